@@ -1,0 +1,148 @@
+"""Array-module lookup: one numerical code for NumPy (CPU) and CuPy (GPU).
+
+Every numerical function takes its arrays as they come and asks :func:`get_array_module`
+which module owns them, in the style of CuPy-aware SciPy code. FFTs go through
+:class:`FFT`, which is ``scipy.fft`` with a thread budget on the CPU and ``cupy.fft`` on the
+GPU, so that a Dask worker pinned to N cores never spawns more FFT threads than it owns.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+
+
+def cupy_or_none() -> ModuleType | None:
+    """CuPy if it imports and sees a device, else None (GPU tests skip on None)."""
+    try:
+        import cupy
+
+        if cupy.cuda.runtime.getDeviceCount() < 1:
+            return None
+        return cupy
+    except Exception:  # ImportError, CUDA driver errors: no usable GPU
+        return None
+
+
+def get_array_module(*arrays: Any) -> ModuleType:
+    """The array module (numpy or cupy) that owns ``arrays``; NumPy for plain Python input."""
+    for a in arrays:
+        mod = type(a).__module__
+        if mod.startswith("cupy"):
+            import cupy
+
+            return cupy
+    return np
+
+
+def resolve_device(device: str) -> ModuleType:
+    """Map ``cpu|gpu|auto`` (CONTRACT §3 ``--device``) to numpy or cupy."""
+    if device == "cpu":
+        return np
+    cp = cupy_or_none()
+    if device == "gpu":
+        if cp is None:
+            raise RuntimeError("--device gpu: CuPy with a CUDA device is not available")
+        return cp
+    if device == "auto":
+        return cp if cp is not None else np
+    raise ValueError(f"device must be cpu, gpu or auto, not {device!r}")
+
+
+def to_numpy(a: Any) -> np.ndarray:
+    """Host copy of an array of either module."""
+    if type(a).__module__.startswith("cupy"):
+        return a.get()
+    return np.asarray(a)
+
+
+def default_fft_workers() -> int:
+    """FFT threads for this process: ``PWF_DASK_FFT_WORKERS`` or all cores it may use."""
+    env = os.environ.get("PWF_DASK_FFT_WORKERS")
+    if env:
+        return max(1, int(env))
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - non-Linux
+        return max(1, os.cpu_count() or 1)
+
+
+@dataclass(frozen=True)
+class FFT:
+    """2-D FFTs over the last two axes for one array module, with a CPU thread budget."""
+
+    xp: ModuleType
+    workers: int = 1
+
+    @classmethod
+    def for_module(cls, xp: ModuleType, workers: int | None = None) -> FFT:
+        return cls(xp, default_fft_workers() if workers is None else max(1, int(workers)))
+
+    def _cpu(self) -> bool:
+        return self.xp is np
+
+    def fft2(self, a, s=None):
+        if self._cpu():
+            import scipy.fft as sf
+
+            return sf.fft2(a, s=s, workers=self.workers)
+        return self.xp.fft.fft2(a, s=s)
+
+    def ifft2(self, a, s=None):
+        if self._cpu():
+            import scipy.fft as sf
+
+            return sf.ifft2(a, s=s, workers=self.workers)
+        return self.xp.fft.ifft2(a, s=s)
+
+    def rfft2(self, a, s=None):
+        if self._cpu():
+            import scipy.fft as sf
+
+            return sf.rfft2(a, s=s, workers=self.workers)
+        return self.xp.fft.rfft2(a, s=s)
+
+    def irfft2(self, a, s):
+        if self._cpu():
+            import scipy.fft as sf
+
+            return sf.irfft2(a, s=s, workers=self.workers)
+        return self.xp.fft.irfft2(a, s=s)
+
+
+def real_dtype(precision: str):
+    """float32 for ``"single"`` (default, complex64 fields), float64 for ``"double"``."""
+    if precision in ("single", "float32", "complex64"):
+        return np.float32
+    if precision in ("double", "float64", "complex128"):
+        return np.float64
+    raise ValueError(f"precision must be 'single' or 'double', not {precision!r}")
+
+
+def complex_dtype(precision: str):
+    return np.complex64 if real_dtype(precision) == np.float32 else np.complex128
+
+
+def complex_exp(z):
+    """exp(z) for complex arrays. NumPy's complex64 exp is ~5x slower than exp(Re) (cos, sin)
+    of the float32 parts (12.7 vs 2.7 ms at 512^2 here); CuPy's fused kernel is used as is."""
+    xp = get_array_module(z)
+    if xp is not np:
+        return xp.exp(z)
+    out = np.empty_like(z)
+    mag = np.exp(z.real)
+    np.multiply(mag, np.cos(z.imag), out=out.real)
+    np.multiply(mag, np.sin(z.imag), out=out.imag)
+    return out
+
+
+def abs2(z):
+    """|z|^2 of a complex array as a real array, without the square root of abs."""
+    xp = get_array_module(z)
+    out = xp.square(z.real)
+    out += xp.square(z.imag)
+    return out

@@ -1,0 +1,83 @@
+"""Background of retrieved projections: sample-free pixels and the plane that zeroes them.
+
+Neither PWF filter passes DC (P^-1 and Gamma^2 both vanish there), so the mean phase never
+moves from its start; it is fixed afterwards by a plane fitted over sample-free pixels. Those
+come from a user mask or are detected: X-ray matter only delays the phase (delta > 0 gives a
+negative phase in the exp(+ikz) convention) and only attenuates, so the sample is where the
+smoothed phase falls, or the attenuation rises, significantly off the background plane. The
+detection never assumes sample-free image borders.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+
+def _design(shape):
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+    yy /= max(shape[0] - 1, 1)
+    xx /= max(shape[1] - 1, 1)
+    return np.stack([np.ones(shape), yy, xx], axis=-1)
+
+
+def fit_plane(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Least-squares plane a + b y + c x through ``image[mask]``, evaluated everywhere."""
+    a = _design(image.shape)
+    coef, *_ = np.linalg.lstsq(a[mask], image[mask], rcond=None)
+    return a @ coef
+
+
+def _robust_sigma(values: np.ndarray) -> float:
+    med = np.median(values)
+    return float(1.4826 * np.median(np.abs(values - med))) or float(np.std(values)) or 1.0
+
+
+def _noise_sigma(image: np.ndarray) -> float:
+    """Robust small-scale spread: MAD of the image minus its own smoothing (noise and texture)."""
+    return _robust_sigma(image - ndimage.gaussian_filter(image, 6.0))
+
+
+def detect_background(
+    phase: np.ndarray,
+    attenuation: np.ndarray | None = None,
+    *,
+    smooth_px: float = 3.0,
+    k: float = 5.0,
+    margin_px: int = 4,
+    iterations: int = 20,
+    start_quantile: float = 0.9,
+) -> np.ndarray:
+    """Boolean mask of sample-free pixels (True = background).
+
+    Starts from the top decile of the smoothed phase (matter only lowers it), then
+    iterates: fit a plane over the current background; call a pixel "sample" where the
+    smoothed phase lies more than ``k`` noise sigmas below the plane (or the attenuation
+    above it); grow the sample by ``margin_px`` for edge fringes; refit. The noise sigma is
+    measured on small scales, so a sample covering most of the frame cannot inflate it.
+    """
+    ph = ndimage.gaussian_filter(np.asarray(phase, np.float64), smooth_px)
+    at = None if attenuation is None else ndimage.gaussian_filter(np.asarray(attenuation, np.float64), smooth_px)
+    sig_p = _noise_sigma(ph)
+    sig_a = None if at is None else _noise_sigma(at)
+    mask = ph >= np.quantile(ph, start_quantile)
+    if at is not None:
+        mask &= at <= np.quantile(at[mask], 0.5)
+    for _ in range(iterations):
+        sample = ph - fit_plane(ph, mask) < -k * sig_p
+        if at is not None:
+            sample |= at - fit_plane(at, mask) > k * sig_a
+        if margin_px:
+            sample = ndimage.binary_dilation(sample, iterations=margin_px)
+        new = ~sample
+        if new.sum() < 0.02 * new.size or np.array_equal(new, mask):
+            break
+        mask = new
+    return mask
+
+
+def zero_background(image: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """``image`` minus the plane fitted over ``background`` pixels."""
+    if background.sum() < 3:
+        raise ValueError("background mask has fewer than 3 pixels: cannot fit a plane")
+    return image - fit_plane(np.asarray(image, np.float64), background)

@@ -1,0 +1,77 @@
+"""Figures a user looks at: projection panels (speckle, phase, attenuation, residual)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def _mpl():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def projection_panels(
+    path: str | Path, *, sample, reference, result, truth_phase=None, truth_attenuation=None, pixel_size_m: float = 1.0
+) -> Path:
+    """PNG of the speckle images, retrieved phase and attenuation, residual (and the truth)."""
+    plt = _mpl()
+    from .backend import to_numpy
+
+    panels = [
+        ("sample speckle", to_numpy(sample), "gray", ""),
+        ("reference speckle", to_numpy(reference), "gray", ""),
+        ("PWF phase", to_numpy(result.phase), "viridis", "rad"),
+        ("PWF attenuation", to_numpy(result.attenuation), "magma", ""),
+        ("residual |y - f|", to_numpy(result.residual), "inferno", "% of mean reference"),
+    ]
+    if truth_phase is not None:
+        panels.insert(3, ("true phase", np.asarray(truth_phase), "viridis", "rad"))
+    if truth_attenuation is not None:
+        panels.insert(5, ("true attenuation", np.asarray(truth_attenuation), "magma", ""))
+    ncol = 4
+    nrow = int(np.ceil(len(panels) / ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4 * ncol, 3.6 * nrow), squeeze=False)
+    ext_mm = None
+    for ax, (title, img, cmap, unit) in zip(axes.flat, panels):
+        ny, nx = img.shape
+        ext_mm = [0, nx * pixel_size_m * 1e3, ny * pixel_size_m * 1e3, 0]
+        vmin, vmax = np.percentile(img, [0.5, 99.5])
+        im = ax.imshow(img, cmap=cmap, vmin=vmin, vmax=vmax, extent=ext_mm)
+        ax.set_title(title)
+        ax.set_xlabel("x (mm)")
+        fig.colorbar(im, ax=ax, shrink=0.8, label=unit)
+    for ax in list(axes.flat)[len(panels) :]:
+        ax.axis("off")
+    fig.suptitle(
+        f"PWF: {result.iterations} iterations, converged={result.converged}, "
+        f"residual RMSE {result.residual_rmse:.2f} % of the mean reference"
+    )
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def bench_ratio_plot(path: str | Path, rows: list[dict]) -> Path:
+    """Iteration time / FFT time per size, one line per variant."""
+    plt = _mpl()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for variant in sorted({r["variant"] for r in rows}):
+        sel = [r for r in rows if r["variant"] == variant]
+        ax.plot([r["pixels"] for r in sel], [r["ratio"] for r in sel], "o-", label=variant)
+    ax.set_xscale("log")
+    ax.set_xlabel("pixels per projection")
+    ax.set_ylabel("PWF iteration time / complex64 FFT time")
+    ax.axhline(20, color="gray", ls="--", lw=1)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return Path(path)

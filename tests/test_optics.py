@@ -1,0 +1,92 @@
+"""Propagation and filters against analytic results."""
+
+import numpy as np
+import pytest
+
+from pwf_dask import optics
+
+
+def gaussian_beam(x, y, w0):
+    return np.exp(-(x**2 + y**2) / w0**2)
+
+
+def fresnel_gaussian(x, y, w0, wavelength, z):
+    """Analytic paraxial Gaussian beam at z (without the exp(ikz) carrier)."""
+    zr = np.pi * w0**2 / wavelength
+    q0 = -1j * zr  # exp(+ikz) convention: q = z - i z_R
+    q = q0 + z
+    k = 2 * np.pi / wavelength
+    return (q0 / q) * np.exp(1j * k * (x**2 + y**2) / (2 * q))
+
+
+def test_wavelength_of_10keV():
+    assert optics.wavelength_m(10_000) == pytest.approx(1.23984e-10, rel=1e-5)
+    with pytest.raises(ValueError):
+        optics.wavelength_m(0)
+
+
+@pytest.mark.parametrize("precision", [np.complex128, np.complex64])
+def test_gaussian_beam_matches_fresnel_solution(precision):
+    n, p = 256, 0.5e-6
+    wl = optics.wavelength_m(10_000)
+    w0 = 6e-6
+    c = (np.arange(n) - n // 2) * p
+    x, y = np.meshgrid(c, c)
+    u0 = gaussian_beam(x, y, w0).astype(precision)
+    for z in (5e-3, 50e-3, 0.2):
+        num = optics.angular_spectrum_propagate(u0, p, wl, z)
+        ana = fresnel_gaussian(x, y, w0, wl, z)
+        err = np.abs(num - ana).max() / np.abs(ana).max()
+        assert err < (1e-4 if precision == np.complex128 else 2e-3), (z, err)
+
+
+def test_forward_then_back_is_identity_and_energy_is_conserved(rng):
+    n, p = 128, 0.65e-6
+    wl = optics.wavelength_m(12_000)
+    f = (rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n))).astype(np.complex64)
+    g = optics.angular_spectrum_propagate(f, p, wl, 0.02)
+    assert np.sum(np.abs(g) ** 2) == pytest.approx(np.sum(np.abs(f) ** 2), rel=1e-5)
+    back = optics.angular_spectrum_propagate(g, p, wl, -0.02)
+    assert np.abs(back - f).max() < 1e-4 * np.abs(f).max()
+
+
+def test_zero_distance_costs_nothing():
+    f = np.ones((16, 16), np.complex64)
+    assert optics.angular_spectrum_propagate(f, 1e-6, 1e-10, 0.0) is f
+
+
+def test_kernel_has_no_single_precision_cancellation():
+    # exp(i 2 pi L / lambda) would be ~1e9 rad; the kernel must be exact at DC and smooth
+    k = optics.angular_spectrum_kernel((64, 64), 0.65e-6, optics.wavelength_m(10_000), 0.02, dtype=np.complex64)
+    assert k[0, 0] == 1
+    v, u = optics.frequency_grid((64, 64), 0.65e-6)
+    wl = optics.wavelength_m(10_000)
+    fresnel = np.exp(-1j * np.pi * wl * 0.02 * (u**2 + v**2))
+    assert np.abs(k - fresnel).max() < 1e-5
+
+
+def test_iotf_is_fourier_transform_of_ipsf():
+    n, p = 256, 0.25e-6
+    xc, yc = 3.47e-6, 4.31e-6
+    c = (np.arange(n) - n // 2) * p
+    x, y = np.meshgrid(c, c)
+    ipsf = 2 / (xc * yc) * np.exp(-2 * np.pi * (x**2 / xc**2 + y**2 / yc**2))  # Eq. (IPSF)
+    otf = np.abs(np.fft.fft2(np.fft.ifftshift(ipsf))) * p * p
+    ana = optics.iotf((n, n), p, xc, yc, half=False, dtype=np.float64)
+    assert np.abs(otf - ana).max() < 1e-6
+    assert optics.iotf((8, 8), p, 0.0, 0.0) is None
+
+
+def test_regularization_window_and_preconditioner():
+    shape = (32, 32)
+    g2 = optics.regularization_window(shape, 1e-6, 3e-6, 3e-6, gamma=1.0, half=False, dtype=np.float64)
+    stf = optics.sample_transfer_function(shape, 1e-6, 3e-6, 3e-6, gamma=1.0, half=False, dtype=np.float64)
+    assert np.allclose(g2, 1 - stf) and g2[0, 0] == 0
+    assert np.allclose(stf, optics.iotf(shape, 1e-6, 3e-6, 3e-6, half=False, dtype=np.float64) ** 2)
+    assert not optics.regularization_window(shape, 1e-6, 3e-6, 3e-6, gamma=0.0).any()
+    p = optics.preconditioner(shape, half=False, dtype=np.float64)
+    v, u = optics.frequency_grid(shape)
+    assert p[0, 0] == 0
+    assert p[0, 1] == pytest.approx(1 / (1 / 32) ** 2)
+    q2 = u**2 + v**2
+    assert np.allclose(p[q2 > 0] * q2[q2 > 0], 1)

@@ -1,0 +1,160 @@
+"""retrieve_projection against ground truth on realistic simulated scenes (CONTRACT §4)."""
+
+import numpy as np
+import pytest
+
+from pwf_dask import retrieve_projection
+from pwf_dask.simulation import Phantom, SpeckleSetup, simulate_projection
+
+
+def kwargs(sim, **extra):
+    return dict(
+        energy_eV=sim.energy_eV,
+        pixel_size_m=sim.pixel_size_m,
+        sample_diffuser_distance_m=sim.sample_diffuser_distance_m,
+        diffuser_detector_distance_m=sim.diffuser_detector_distance_m,
+        **extra,
+    )
+
+
+def gain(recovered, truth, inside):
+    """Regression slope of recovered on true values over ``inside`` (offset free)."""
+    return float(np.polyfit(truth[inside], np.asarray(recovered)[inside], 1)[0])
+
+
+def bead_contrast(image, sim, sphere):
+    """Mean over the bead's central disk minus the mean over a ring around it."""
+    ny, nx = image.shape
+    p = sim.pixel_size_m
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    cx = sphere.u_m / p + (nx - 1) / 2
+    cy = sphere.y_m / p + (ny - 1) / 2
+    r = np.hypot(xx - cx, yy - cy) * p / sphere.radius_m
+    return float(np.mean(image[r < 0.5]) - np.mean(image[(r > 1.2) & (r < 1.6)]))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """The issue's scene: 512 x 512, the paper's geometry, sub-pixel sandpaper, 1e4 photons."""
+    sim = simulate_projection(SpeckleSetup(shape=(512, 512), photons=1e4), seed=1)
+    res = retrieve_projection(sim.sample, sim.reference, **kwargs(sim))
+    return sim, res
+
+
+def test_contract_result(scene):
+    sim, res = scene
+    assert res.phase.shape == sim.sample.shape and res.attenuation.shape == sim.sample.shape
+    assert isinstance(res.phase, np.ndarray)
+    assert res.converged and 0 < res.iterations <= 2000
+    assert res.parameters["coherence_calibrated"]
+
+
+def test_phase_gain_within_10_percent(scene):
+    sim, res = scene
+    g = gain(res.phase, sim.phase, sim.phase < -0.5)
+    assert 0.9 <= g <= 1.1, g
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known: bead phase contrast overshoots by ~23 % with the calibrated IOTF (8 % long); "
+    "+10 % with the true coherence lengths, +4-14 % with Im(alpha) = 0.05 (README, Accuracy)",
+)
+def test_largest_bead_phase_contrast_within_15_percent(scene):
+    sim, res = scene
+    bead = max(sim.phantom.spheres, key=lambda s: s.radius_m)
+    true_c = bead_contrast(sim.phase, sim, bead)
+    got = bead_contrast(res.phase, sim, bead)
+    assert got == pytest.approx(true_c, rel=0.15)
+
+
+def test_attenuation_gain_within_15_percent(scene):
+    sim, res = scene
+    inside = sim.attenuation > 0.2 * sim.attenuation.max()
+    g = gain(res.attenuation, sim.attenuation, inside)
+    assert 0.85 <= g <= 1.15, g
+
+
+def test_fits_data_to_near_the_noise_level(scene):
+    sim, res = scene
+    noise_pct = 100 * np.sqrt(np.mean(sim.sample) / sim.photons) / np.mean(sim.reference)
+    assert res.residual_rmse < 1.3 * noise_pct
+
+
+def test_background_is_zero(scene):
+    sim, res = scene
+    bg = sim.phase > -0.01
+    assert abs(float(np.mean(res.phase[bg]))) < 0.05 * abs(sim.phase.min())
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known: on a 35 pi glass rod at 2 um pixels the phase block converges ~90x slower than at the "
+    "paper's 0.65 um (gain 0.01); phase_scale='auto' moves it into a wrong basin (README, Where PWF fails)",
+)
+def test_thick_scene_without_wrapping():
+    """A 420 um soda-lime glass rod: > 30 pi of phase, recovered without wrapping."""
+    setup = SpeckleSetup(shape=(256, 256), pixel_size_m=2e-6, photons=1e4)
+    rod = Phantom(cylinder_radius_m=210e-6, cylinder_material="soda-lime glass")
+    sim = simulate_projection(setup, phantom=rod, seed=2)
+    assert sim.phase.min() < -30 * np.pi
+    res = retrieve_projection(sim.sample, sim.reference, **kwargs(sim))
+    g = gain(res.phase, sim.phase, sim.phase < -1.0)
+    assert 0.85 <= g <= 1.15, g
+
+
+@pytest.fixture(scope="module")
+def small_scene():
+    return simulate_projection(SpeckleSetup(shape=(256, 256), photons=1e4), seed=1)
+
+
+def test_ablation_without_preconditioner_leaves_phase_near_zero(small_scene):
+    sim = small_scene
+    res = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, preconditioner=False, max_iter=300))
+    assert gain(res.phase, sim.phase, sim.phase < -0.5) < 0.2
+
+
+def test_double_precision_agrees_with_single(small_scene):
+    sim = small_scene
+    r32 = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=150, tol=0))
+    r64 = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=150, tol=0, precision="double"))
+    inside = sim.phase < -0.5
+    assert r64.phase.dtype == np.float64 and r32.phase.dtype == np.float32
+    assert np.abs(r64.phase - r32.phase)[inside].mean() < 0.02 * np.abs(sim.phase[inside]).mean()
+
+
+@pytest.mark.parametrize(
+    "change,message",
+    [
+        (dict(sample=np.ones((40, 40))), "differ in shape"),
+        (dict(sample=np.full((64, 64), np.nan)), "non-finite"),
+        (dict(reference=-np.ones((64, 64))), "negative"),
+        (dict(sample=np.ones(64)), "2-D"),
+        (dict(diffuser_detector_distance_m=0.0), "distances"),
+        (dict(method="magic"), "unknown method"),
+    ],
+)
+def test_bad_input_gets_one_line_error(change, message):
+    args = dict(
+        sample=np.ones((64, 64)),
+        reference=np.ones((64, 64)),
+        energy_eV=1e4,
+        pixel_size_m=1e-6,
+        sample_diffuser_distance_m=0.0,
+        diffuser_detector_distance_m=0.02,
+    )
+    args.update(change)
+    with pytest.raises(ValueError, match=message) as err:
+        retrieve_projection(**args)
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.gpu
+def test_cupy_matches_numpy(cupy, small_scene):
+    sim = small_scene
+    kw = kwargs(sim, max_iter=100, tol=0)
+    cpu = retrieve_projection(sim.sample, sim.reference, **kw)
+    gpu = retrieve_projection(cupy.asarray(sim.sample), cupy.asarray(sim.reference), **kw)
+    assert isinstance(gpu.phase, cupy.ndarray)
+    diff = np.abs(cupy.asnumpy(gpu.phase) - cpu.phase)
+    assert diff.max() < 1e-3 * np.abs(sim.phase).max() + 1e-3
