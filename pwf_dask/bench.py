@@ -18,21 +18,25 @@ from . import optics, solver
 from .backend import FFT, default_fft_workers, resolve_device
 
 
-def _timeit(fn, sync, repeat: int, min_time: float = 0.5) -> float:
-    fn()
+def _interleaved_min(fns, sync, rounds: int, min_time: float = 0.15) -> list[float]:
+    """Seconds per call of each function, the minimum over ``rounds`` rounds that alternate
+    the functions, so that a noisy neighbour slows both sides of a ratio alike."""
+    for fn in fns:
+        fn()
     sync()
-    best = float("inf")
-    for _ in range(repeat):
-        n = 0
-        t0 = time.perf_counter()
-        while True:
-            fn()
-            n += 1
-            sync()
-            el = time.perf_counter() - t0
-            if el > min_time / repeat:
-                break
-        best = min(best, el / n)
+    best = [float("inf")] * len(fns)
+    for _ in range(rounds):
+        for i, fn in enumerate(fns):
+            n = 0
+            t0 = time.perf_counter()
+            while True:
+                fn()
+                n += 1
+                sync()
+                el = time.perf_counter() - t0
+                if el > min_time:
+                    break
+            best[i] = min(best[i], el / n)
     return best
 
 
@@ -74,8 +78,7 @@ def iteration_benchmark(
         if xp is not np:
             xp.cuda.Stream.null.synchronize()
 
-    t_fft = _timeit(lambda: fft.fft2(a), sync, repeat)
-    t_it = _timeit(iteration, sync, repeat)
+    t_fft, t_it = _interleaved_min([lambda: fft.fft2(a), iteration], sync, rounds=repeat)
     return {
         "device": device_name(xp),
         "variant": f"L1{'>0' if l1_m else '=0'}, upsample {upsample}, {precision}",
@@ -109,7 +112,7 @@ def run_iteration_benchmark(out_dir: str | Path, device: str = "cpu", sizes=None
     rows = []
     for shape in sizes:
         for v in variants:
-            row = iteration_benchmark(shape, device=device, repeat=2 if quick else 3, **v)
+            row = iteration_benchmark(shape, device=device, repeat=2 if quick else 5, **v)
             rows.append(row)
             print(
                 f"{row['shape']:>10}  {row['variant']:<28} iteration {row['iteration_ms']:9.2f} ms   "
