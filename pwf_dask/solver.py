@@ -418,13 +418,16 @@ def initial_step(psi, direction, j0: float, y, model: PWFModel, step: float, max
     pixels: the iterate barely moves and the stop rule fires on a phase near 0. Doubling while J
     falls restores the scale; the backtracking in :func:`pwf` keeps later steps safe.
     """
-    best_eta, best_j = step, objective(psi - step * direction, y, model)
+    with np.errstate(over="ignore", invalid="ignore"):
+        best_j = objective(psi - step * direction, y, model)
+    best_eta = step
     if not best_j < j0:
         return step
     eta = step
     for _ in range(max_doublings):
         eta *= 2.0
-        j = objective(psi - eta * direction, y, model)
+        with np.errstate(over="ignore", invalid="ignore"):
+            j = objective(psi - eta * direction, y, model)
         if not j < best_j:
             break
         best_eta, best_j = eta, j
@@ -492,7 +495,9 @@ def pwf(
     k = 0
     while k < max_iter:
         k += 1
-        j, d, ev = objective_and_direction(psi, y, model)
+        # an over-long trial step may overflow exp(psi); J is then inf and the step is rejected
+        with np.errstate(over="ignore", invalid="ignore"):
+            j, d, ev = objective_and_direction(psi, y, model)
         if not math.isfinite(j):
             reason = "non-finite objective"
             if last is None:
