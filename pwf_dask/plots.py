@@ -37,7 +37,6 @@ def projection_panels(
     ncol = 4
     nrow = int(np.ceil(len(panels) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(4 * ncol, 3.6 * nrow), squeeze=False)
-    ext_mm = None
     for ax, (title, img, cmap, unit) in zip(axes.flat, panels):
         ny, nx = img.shape
         ext_mm = [0, nx * pixel_size_m * 1e3, ny * pixel_size_m * 1e3, 0]

@@ -141,8 +141,6 @@ def sandpaper_thickness(
     mean_area = float(np.sum(frac * np.pi * centres**2))
     n_total = layers * coverage * area / mean_area
     thickness_spec = np.zeros((ny, nx // 2 + 1), complex)
-    fy = np.fft.fftfreq(ny)[:, None]
-    fx = np.fft.rfftfreq(nx)[None, :]
     for r, f in zip(centres, frac):
         n = rng.poisson(n_total * f)
         if n == 0:
@@ -162,7 +160,6 @@ def sandpaper_thickness(
         kern = np.zeros(shape)
         kern[yy % ny, xx % nx] = k
         thickness_spec += np.fft.rfft2(imp) * np.fft.rfft2(kern)
-    del fy, fx
     return np.fft.irfft2(thickness_spec, s=shape)
 
 
