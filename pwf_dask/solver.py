@@ -347,55 +347,58 @@ def wirtinger_derivative(ev: Evaluation, model: PWFModel):
     return g.astype(model.cdtype, copy=False)
 
 
-def regularizer_value(psi, model: PWFModel) -> float:
-    """The regularizer's part of J (see the module docstring), by Parseval on rfft spectra."""
+def _regularizer(psi, model: PWFModel):
+    """The regularizer's value in J and the spectra of its direction terms.
+
+    Returns (value, re_term, im_term): value by Parseval on rfft spectra (module docstring),
+    re_term = Re(alpha) Gamma^2 rfft(Re psi) and im_term = Im(alpha) Gamma^2 rfft(Im psi), or
+    None where that part of alpha is 0 (no FFT is spent on it).
+    """
     if model.reg_window is None:
-        return 0.0
+        return 0.0, None, None
     xp, fft = model.xp, model.fft
     n = model.shape[0] * model.shape[1]
-    total = 0.0
+    value = 0.0
+    terms = []
     for part, weight, a in (
         (psi.real, model.reg_window, model.alpha.real),
         (psi.imag, model.reg_phase_weight, model.alpha.imag),
     ):
-        if a != 0:
-            sp = fft.rfft2(xp.ascontiguousarray(part))
-            total += 0.5 * a * float(xp.sum(model.reg_weights * weight * (sp.real**2 + sp.imag**2))) / n
-    return total
+        if a == 0:
+            terms.append(None)
+            continue
+        sp = fft.rfft2(xp.ascontiguousarray(part))
+        value += 0.5 * a * float(xp.sum(model.reg_weights * weight * (sp.real**2 + sp.imag**2))) / n
+        sp *= a * model.reg_window
+        terms.append(sp)
+    return value, terms[0], terms[1]
+
+
+def regularizer_value(psi, model: PWFModel) -> float:
+    """The regularizer's part of J (see the module docstring)."""
+    return _regularizer(psi, model)[0]
 
 
 def objective_and_direction(psi, y, model: PWFModel):
     """J(psi) and the update direction M grad J = Precond(g) + Reg(psi) of Algorithm S1, line 11.
 
     ``Preconditioner`` filters Im(g) by P^-1; ``Regularizer`` adds Re(alpha) Gamma^2 Re(psi)
-    + i Im(alpha) Gamma^2 Im(psi). All three filters share one rfft per real part.
+    + i Im(alpha) Gamma^2 Im(psi). The phase terms are summed in Fourier space, so one inverse
+    FFT serves both.
     """
     xp, fft = model.xp, model.fft
     ev = residual(physical_model(psi, model), y, model)
     g = wirtinger_derivative(ev, model)
-    n = model.shape[0] * model.shape[1]
-    j = ev.loss / (4.0 * model.norm)
-    re_dir = g.real
-    im_spec = None
+    reg_value, re_term, im_term = _regularizer(psi, model)
+    j = ev.loss / (4.0 * model.norm) + reg_value
+    re_dir = g.real if re_term is None else g.real + fft.irfft2(re_term, s=model.shape)
     if model.precond is not None:
         im_spec = fft.rfft2(xp.ascontiguousarray(g.imag)) * model.precond
-    im_dir = g.imag
-    if model.reg_window is not None:
-        a_re, a_im = model.alpha.real, model.alpha.imag
-        if a_re != 0:
-            sp = fft.rfft2(xp.ascontiguousarray(psi.real))
-            j += 0.5 * a_re * float(xp.sum(model.reg_weights * model.reg_window * (sp.real**2 + sp.imag**2))) / n
-            re_dir = re_dir + a_re * fft.irfft2(sp * model.reg_window, s=model.shape)
-        if a_im != 0:
-            sp = fft.rfft2(xp.ascontiguousarray(psi.imag))
-            j += 0.5 * a_im * float(xp.sum(model.reg_weights * model.reg_phase_weight * (sp.real**2 + sp.imag**2))) / n
-            term = a_im * sp * model.reg_window
-            im_spec = term if im_spec is None else im_spec + term
-            if model.precond is None:
-                im_dir = im_dir + fft.irfft2(term, s=model.shape)
-                im_spec = None
-    if im_spec is not None:
+        if im_term is not None:
+            im_spec += im_term
         im_dir = fft.irfft2(im_spec, s=model.shape)
+    else:
+        im_dir = g.imag if im_term is None else g.imag + fft.irfft2(im_term, s=model.shape)
     if model.phase_scale != 1.0:
         im_dir = im_dir * model.phase_scale
     direction = xp.empty(model.shape, dtype=model.cdtype)
