@@ -14,18 +14,25 @@ import numpy as np
 from scipy import ndimage
 
 
-def _design(shape):
+def _design(shape, degree: int = 1):
     yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
     yy /= max(shape[0] - 1, 1)
     xx /= max(shape[1] - 1, 1)
-    return np.stack([np.ones(shape), yy, xx], axis=-1)
+    terms = [yy**i * xx**j for i in range(degree + 1) for j in range(degree + 1 - i)]
+    return np.stack(terms, axis=-1)
+
+
+def fit_surface(image: np.ndarray, mask: np.ndarray, degree: int = 1) -> np.ndarray:
+    """Least-squares polynomial surface of ``degree`` (1: plane, 2: quadratic) through
+    ``image[mask]``, evaluated everywhere."""
+    a = _design(image.shape, degree)
+    coef, *_ = np.linalg.lstsq(a[mask], image[mask], rcond=None)
+    return a @ coef
 
 
 def fit_plane(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Least-squares plane a + b y + c x through ``image[mask]``, evaluated everywhere."""
-    a = _design(image.shape)
-    coef, *_ = np.linalg.lstsq(a[mask], image[mask], rcond=None)
-    return a @ coef
+    return fit_surface(image, mask, 1)
 
 
 def _robust_sigma(values: np.ndarray) -> float:
@@ -76,8 +83,8 @@ def detect_background(
     return mask
 
 
-def zero_background(image: np.ndarray, background: np.ndarray) -> np.ndarray:
-    """``image`` minus the plane fitted over ``background`` pixels."""
-    if background.sum() < 3:
-        raise ValueError("background mask has fewer than 3 pixels: cannot fit a plane")
-    return image - fit_plane(np.asarray(image, np.float64), background)
+def zero_background(image: np.ndarray, background: np.ndarray, degree: int = 1) -> np.ndarray:
+    """``image`` minus the surface (plane by default) fitted over ``background`` pixels."""
+    if background.sum() < 6:
+        raise ValueError("background mask has fewer than 6 pixels: cannot fit a surface")
+    return image - fit_surface(np.asarray(image, np.float64), background, degree)

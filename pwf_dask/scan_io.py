@@ -1,0 +1,280 @@
+"""Scan and reconstruction stores (CONTRACT §1-2): validation, flat/dark correction, layout.
+
+A scan is opened with xarray and validated completely before anything is written; every
+problem is one line naming it (:class:`ScanError`). The reconstruction store is laid out for
+the stages that follow:
+
+* ``phase``/``attenuation`` (position, angle, y, x) are chunked one angle by a block of
+  rows: a retrieval task writes whole chunks of its own angle only (no two tasks ever share
+  a chunk, so nothing is corrupted), and a sinogram slab (all angles, one row block) is read
+  as one chunk per angle, with no in-memory rechunk of the whole scan;
+* per-projection diagnostics (position, angle) are one element per chunk, for the same
+  reason; ``iterations`` = -1 marks an angle not done yet, which is what resuming reads;
+* ``delta``/``beta`` (position, y, v, u) are chunked by the same row blocks.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+REQUIRED_ATTRS = (
+    "energy_eV",
+    "pixel_size_m",
+    "sample_diffuser_distance_m",
+    "diffuser_detector_distance_m",
+)
+
+
+class ScanError(ValueError):
+    """A scan that breaks CONTRACT §1; the message is one line naming the problem."""
+
+
+@dataclass
+class ScanInfo:
+    """What the stages need to know about a validated scan."""
+
+    path: str
+    n_positions: int
+    angles_deg: np.ndarray
+    shape: tuple[int, int]
+    x_m: np.ndarray
+    y_m: np.ndarray
+    energy_eV: float
+    pixel_size_m: float
+    sample_diffuser_distance_m: float
+    diffuser_detector_distance_m: float
+    coherence_length_x_m: float | None
+    coherence_length_y_m: float | None
+    flat_dark_corrected: bool
+    has_flat: bool
+    has_dark: bool
+    attrs: dict = field(default_factory=dict)
+
+
+def _attr_float(attrs, name, path):
+    try:
+        value = float(attrs[name])
+    except KeyError:
+        raise ScanError(f"{path}: missing attribute {name!r}") from None
+    except (TypeError, ValueError):
+        raise ScanError(f"{path}: attribute {name!r} is not a number: {attrs[name]!r}") from None
+    if not np.isfinite(value):
+        raise ScanError(f"{path}: attribute {name!r} is not finite")
+    return value
+
+
+def correct(raw, flat=None, dark=None, corrected: bool = False):
+    """Flat/dark correction (I - dark) / (flat - dark) as float32; identity when ``corrected``."""
+    a = np.asarray(raw, dtype=np.float32)
+    if corrected:
+        return a
+    if dark is not None:
+        a = a - np.asarray(dark, np.float32)
+    if flat is not None:
+        den = np.asarray(flat, np.float32) - (0 if dark is None else np.asarray(dark, np.float32))
+        a = a / den
+    return a
+
+
+def open_scan(path: str | Path, check_values: bool = True):
+    """Open and validate a scan store. Returns (dataset, ScanInfo); raises ScanError."""
+    import xarray as xr
+
+    path = str(path)
+    if not Path(path).exists():
+        raise ScanError(f"{path}: no such scan store")
+    try:
+        ds = xr.open_zarr(path, consolidated=None)
+    except Exception as exc:  # zarr/xarray raise many types for a broken store
+        raise ScanError(f"{path}: not a readable Zarr dataset ({type(exc).__name__}: {exc})") from None
+    for name in ("projections", "reference"):
+        if name not in ds:
+            raise ScanError(f"{path}: missing variable {name!r}")
+    if ds["projections"].dims != ("position", "angle", "y", "x"):
+        raise ScanError(f"{path}: projections has dims {ds['projections'].dims}, expected (position, angle, y, x)")
+    if ds["reference"].dims != ("position", "y", "x"):
+        raise ScanError(f"{path}: reference has dims {ds['reference'].dims}, expected (position, y, x)")
+    npos, nang, ny, nx = ds["projections"].shape
+    if ds["reference"].shape != (npos, ny, nx):
+        raise ScanError(
+            f"{path}: reference shape {ds['reference'].shape} does not match projections (position, y, x) = "
+            f"{(npos, ny, nx)}"
+        )
+    for name in ("flat", "dark"):
+        if name in ds and ds[name].shape != (ny, nx):
+            raise ScanError(f"{path}: {name} shape {ds[name].shape} is not (y, x) = {(ny, nx)}")
+    if "angle" not in ds.coords:
+        raise ScanError(f"{path}: missing coordinate 'angle' (degrees)")
+    angles = np.asarray(ds["angle"].values, dtype=np.float64)
+    if not np.all(np.isfinite(angles)):
+        raise ScanError(f"{path}: angle coordinate has non-finite values")
+    if nang < 2 or min(ny, nx) < 16:
+        raise ScanError(f"{path}: projections {ds['projections'].shape} too small (need >= 2 angles, 16 x 16 px)")
+    attrs = dict(ds.attrs)
+    vals = {name: _attr_float(attrs, name, path) for name in REQUIRED_ATTRS}
+    if vals["energy_eV"] <= 0:
+        raise ScanError(f"{path}: energy_eV must be positive, got {vals['energy_eV']}")
+    if vals["pixel_size_m"] <= 0:
+        raise ScanError(f"{path}: pixel_size_m must be positive, got {vals['pixel_size_m']}")
+    if vals["sample_diffuser_distance_m"] < 0:
+        raise ScanError(f"{path}: sample_diffuser_distance_m must be >= 0, got {vals['sample_diffuser_distance_m']}")
+    if vals["diffuser_detector_distance_m"] <= 0:
+        raise ScanError(
+            f"{path}: diffuser_detector_distance_m must be positive, got {vals['diffuser_detector_distance_m']}"
+        )
+    coh = []
+    for name in ("coherence_length_x_m", "coherence_length_y_m"):
+        if name in attrs:
+            c = _attr_float(attrs, name, path)
+            if c < 0:
+                raise ScanError(f"{path}: {name} must be >= 0, got {c}")
+            coh.append(c)
+        else:
+            coh.append(None)
+    corrected = bool(attrs.get("flat_dark_corrected", False))
+    p = vals["pixel_size_m"]
+    x = np.asarray(ds["x"].values, np.float64) if "x" in ds.coords else (np.arange(nx) - (nx - 1) / 2) * p
+    y = np.asarray(ds["y"].values, np.float64) if "y" in ds.coords else (np.arange(ny) - (ny - 1) / 2) * p
+    info = ScanInfo(
+        path=path, n_positions=npos, angles_deg=angles, shape=(ny, nx), x_m=x, y_m=y,
+        energy_eV=vals["energy_eV"], pixel_size_m=p,
+        sample_diffuser_distance_m=vals["sample_diffuser_distance_m"],
+        diffuser_detector_distance_m=vals["diffuser_detector_distance_m"],
+        coherence_length_x_m=coh[0], coherence_length_y_m=coh[1], flat_dark_corrected=corrected,
+        has_flat="flat" in ds, has_dark="dark" in ds, attrs=attrs,
+    )
+    if check_values:
+        check_scan_values(ds, info)
+    return ds, info
+
+
+def check_scan_values(ds, info: ScanInfo) -> None:
+    """Refuse non-finite or negative intensities after correction (a chunked Dask pass)."""
+    import dask
+    import dask.array as da
+
+    flat = ds["flat"].data if info.has_flat else None
+    dark = ds["dark"].data if info.has_dark else None
+    for name in ("reference", "projections"):
+        arr = ds[name].data
+        if not isinstance(arr, da.Array):
+            arr = da.from_array(arr)
+        cor = arr.astype(np.float32)
+        if not info.flat_dark_corrected:
+            if dark is not None:
+                cor = cor - da.asarray(dark).astype(np.float32)
+            if flat is not None:
+                den = da.asarray(flat).astype(np.float32) - (0 if dark is None else da.asarray(dark).astype(np.float32))
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    cor = cor / den
+        with np.errstate(divide="ignore", invalid="ignore"):
+            finite, minimum = dask.compute(da.isfinite(cor).all(), da.nanmin(cor), scheduler="threads")
+        if not finite:
+            raise ScanError(f"{info.path}: {name} has non-finite values after flat/dark correction")
+        if minimum < 0:
+            raise ScanError(f"{info.path}: {name} has negative values after flat/dark correction (min {minimum:.3g})")
+
+
+def row_block(ny: int, nx: int) -> int:
+    """Rows per chunk: ~64k pixels (a 25-row slab of a 2560-wide frame, 410 MB over 801 angles)."""
+    return int(min(ny, max(4, 65536 // max(nx, 1))))
+
+
+def _create(group, name, shape, chunks, dims, dtype, fill, data=None):
+    arr = group.create_array(
+        name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill, dimension_names=dims, overwrite=True
+    )
+    if data is not None:
+        arr[...] = data
+    return arr
+
+
+RECON_KEYS = (
+    "method", "gamma", "alpha", "step", "tol", "max_iter", "coherence_length_x_m", "coherence_length_y_m",
+    "precision", "upsample", "pad", "normalization", "preconditioner",
+)
+
+
+def create_reconstruction(path: str | Path, info: ScanInfo, params: dict):
+    """Create (or reopen, when its parameters match) the reconstruction store for ``info``.
+
+    Returns the zarr group. A store made with other retrieval parameters is refused rather
+    than mixed: resuming must never combine two reconstructions.
+    """
+    import zarr
+
+    path = str(path)
+    npos, nang = info.n_positions, info.angles_deg.size
+    ny, nx = info.shape
+    if Path(path).exists():
+        try:
+            g = zarr.open_group(path, mode="r+")
+        except Exception as exc:
+            raise ScanError(f"{path}: exists and is not a reconstruction store ({exc})") from None
+        old = json.loads(g.attrs.get("pwf_dask_parameters", "{}"))
+        diff = [k for k in RECON_KEYS if k in old and k in params and str(old[k]) != str(params[k])]
+        if diff:
+            raise ScanError(
+                f"{path}: exists with other parameters ({', '.join(diff)}); use a new path to reconstruct again"
+            )
+        if "phase" not in g or g["phase"].shape != (npos, nang, ny, nx):
+            raise ScanError(f"{path}: exists and does not match this scan's shape")
+        return g
+    g = zarr.open_group(path, mode="w")
+    rb = row_block(ny, nx)
+    _create(g, "position", (npos,), (npos,), ("position",), "int64", 0, np.arange(npos))
+    _create(g, "angle", (nang,), (nang,), ("angle",), "float64", 0.0, info.angles_deg)
+    _create(g, "y", (ny,), (ny,), ("y",), "float64", 0.0, info.y_m)
+    _create(g, "x", (nx,), (nx,), ("x",), "float64", 0.0, info.x_m)
+    for name in ("phase", "attenuation"):
+        _create(g, name, (npos, nang, ny, nx), (1, 1, rb, nx), ("position", "angle", "y", "x"), "float32", np.nan)
+    _create(g, "iterations", (npos, nang), (1, 1), ("position", "angle"), "int32", -1)
+    _create(g, "converged", (npos, nang), (1, 1), ("position", "angle"), "bool", False)
+    _create(g, "residual_rmse", (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
+    attrs = {k: v for k, v in info.attrs.items() if isinstance(v, (int, float, str, bool))}
+    attrs.update({k: v for k, v in params.items() if isinstance(v, (int, float, str, bool)) or v is None})
+    attrs["pwf_dask_parameters"] = json.dumps(params, default=str)
+    attrs["scan"] = info.path
+    g.attrs.update(attrs)
+    return g
+
+
+def consolidate(path: str | Path) -> None:
+    """Consolidate metadata so ``xarray.open_zarr`` opens the store in one read."""
+    import warnings
+
+    import zarr
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        zarr.consolidate_metadata(str(path))
+
+
+def write_scan(path: str | Path, projections, reference, angles_deg, attrs: dict, *, flat=None, dark=None,
+               pixel_size_m: float, x_m=None, chunk_angles: int = 1) -> None:
+    """Write a scan store (CONTRACT §1) from arrays: one chunk per angle and whole frames."""
+    import zarr
+
+    proj = np.asarray(projections)
+    npos, nang, ny, nx = proj.shape
+    g = zarr.open_group(str(path), mode="w")
+    x = x_m if x_m is not None else (np.arange(nx) - (nx - 1) / 2) * pixel_size_m
+    y = (np.arange(ny) - (ny - 1) / 2) * pixel_size_m
+    _create(g, "position", (npos,), (npos,), ("position",), "int64", 0, np.arange(npos))
+    _create(g, "angle", (nang,), (nang,), ("angle",), "float64", 0.0, np.asarray(angles_deg, np.float64))
+    _create(g, "y", (ny,), (ny,), ("y",), "float64", 0.0, y)
+    _create(g, "x", (nx,), (nx,), ("x",), "float64", 0.0, np.asarray(x, np.float64))
+    _create(g, "projections", proj.shape, (1, chunk_angles, ny, nx), ("position", "angle", "y", "x"),
+            proj.dtype, 0, proj)
+    ref = np.asarray(reference)
+    _create(g, "reference", ref.shape, (1, ny, nx), ("position", "y", "x"), ref.dtype, 0, ref)
+    for name, a in (("flat", flat), ("dark", dark)):
+        if a is not None:
+            a = np.asarray(a)
+            _create(g, name, a.shape, a.shape, ("y", "x"), a.dtype, 0, a)
+    g.attrs.update(attrs)
+    consolidate(path)
