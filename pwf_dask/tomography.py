@@ -26,7 +26,7 @@ def ramlak_filter(n: int, xp=np, dtype=np.float32):
     h = np.zeros(size)
     h[0] = 0.25
     h[1::2] = -1 / (np.pi * k) ** 2
-    return xp.asarray((2 * np.real(np.fft.rfft(h))).astype(dtype))
+    return xp.asarray(np.real(np.fft.rfft(h)).astype(dtype))  # = |nu| up to band-limiting
 
 
 def pad_len(n: int) -> int:
