@@ -1,8 +1,6 @@
 """Command line: parses and calls; every computation lives in the library modules.
 
-Implemented now: ``pwf-dask demo`` (one simulated projection, retrieved and plotted) and
-``pwf-dask bench iteration``. The scan commands of CONTRACT §3 (simulate, retrieve, tomo,
-fsc, run) come with the Dask workflow.
+Commands of CONTRACT §3: simulate, retrieve, tomo, fsc, run, demo; plus ``bench``.
 """
 
 from __future__ import annotations
@@ -13,61 +11,145 @@ import time
 from pathlib import Path
 
 
-def _demo(args) -> int:
+def _scan_demo(args) -> int:
     import numpy as np
+    import xarray as xr
 
-    from . import retrieve_projection
-    from .plots import projection_panels
-    from .simulation import SpeckleSetup, simulate_projection
+    from . import scan_io
+    from .plots import fsc_plot, projection_panels, tomogram_panels
+    from .retrieval import RetrievalResult
+    from .simulation import simulate_scan
+    from .workflow import run_scan
 
     out = Path(args.dir)
     out.mkdir(parents=True, exist_ok=True)
-    n = args.size
-    print(f"simulating a {n} x {n} speckle projection (paper geometry, sub-pixel sandpaper, {args.photons:g} ph/px)")
-    sim = simulate_projection(SpeckleSetup(shape=(n, n), photons=args.photons), seed=args.seed)
+    scan, recon = out / "scan.zarr", out / "recon.zarr"
     t0 = time.perf_counter()
-    res = retrieve_projection(
-        sim.sample,
-        sim.reference,
-        energy_eV=sim.energy_eV,
-        pixel_size_m=sim.pixel_size_m,
-        sample_diffuser_distance_m=sim.sample_diffuser_distance_m,
-        diffuser_detector_distance_m=sim.diffuser_detector_distance_m,
+    if not scan.exists():
+        simulate_scan(scan, preset="demo", seed=args.seed, rotation_axis_offset_px=2.5)
+    summary = run_scan(scan, recon, scheduler=args.scheduler, device=args.device, max_iter=args.max_iter)
+    ds = xr.open_zarr(recon)
+    sds, _ = scan_io.open_scan(scan, check_values=False)
+    flat = sds["flat"].values if "flat" in sds else None
+    dark = sds["dark"].values if "dark" in sds else None
+    corrected = bool(sds.attrs.get("flat_dark_corrected", False))
+    sample = scan_io.correct(sds["projections"][0, 0].values, flat, dark, corrected)
+    reference = scan_io.correct(sds["reference"][0].values, flat, dark, corrected)
+    res = RetrievalResult(
+        phase=ds["phase"][0, 0].values,
+        attenuation=ds["attenuation"][0, 0].values,
+        iterations=int(ds["iterations"][0, 0]),
+        converged=bool(ds["converged"][0, 0]),
+        residual=np.zeros_like(sample),
+        residual_rmse=float(ds["residual_rmse"][0, 0]),
+        loss_history=[],
+        coherence_length_x_m=float(ds.attrs["coherence_length_x_m"]),
+        coherence_length_y_m=float(ds.attrs["coherence_length_y_m"]),
+    )
+    figs = [
+        projection_panels(
+            out / "projection.png",
+            sample=sample,
+            reference=reference,
+            result=res,
+            pixel_size_m=float(ds.attrs["pixel_size_m"]),
+        ),
+        tomogram_panels(out / "tomograms.png", ds),
+        fsc_plot(out / "fsc.png", ds),
+    ]
+    f = summary["fsc"]
+    print(f"done in {time.perf_counter() - t0:.0f} s")
+    print(
+        f"FSC ({f['split']}, 1/4): delta {f['delta'] * 1e6:.2f} um, beta {f['beta'] * 1e6:.2f} um"
+        + (f"; against the truth (1/2): delta {f['delta_truth'] * 1e6:.2f} um" if "delta_truth" in f else "")
+    )
+    print(
+        f"rotation centre {summary['tomo']['rotation_center_m'] * 1e6:+.2f} um "
+        f"(simulated {float(sds.attrs['simulation_rotation_axis_offset_m']) * 1e6:+.2f} um)"
+    )
+    print(f"scan: {scan}\nreconstruction: {recon}\nfigures: " + ", ".join(str(p) for p in figs))
+    return 0
+
+
+def _simulate(args) -> int:
+    from .simulation import simulate_scan
+
+    shape = tuple(args.shape) if args.shape else None
+    path = simulate_scan(
+        args.out,
+        preset=args.preset,
+        shape=shape,
+        angles=args.angles,
+        positions=args.positions,
+        photons=args.photons,
+        seed=args.seed,
+        raw=not args.corrected,
+        rotation_axis_offset_px=args.axis_offset_px,
+    )
+    print(f"wrote scan {path}")
+    return 0
+
+
+def _retrieve(args) -> int:
+    from .workflow import retrieve_scan
+
+    r = retrieve_scan(
+        args.scan,
+        args.recon,
+        scheduler=args.scheduler,
+        device=args.device,
+        method=args.method,
         max_iter=args.max_iter,
+        tol=args.tol,
+        gamma=args.gamma,
+        alpha=args.alpha,
     )
-    dt = time.perf_counter() - t0
-    inside = sim.phase < -0.5
-    gain = float(np.polyfit(sim.phase[inside], res.phase[inside], 1)[0])
-    ins_a = sim.attenuation > 0.2 * sim.attenuation.max()
-    gain_a = float(np.polyfit(sim.attenuation[ins_a], res.attenuation[ins_a], 1)[0])
-    fig = projection_panels(
-        out / "projection.png",
-        sample=sim.sample,
-        reference=sim.reference,
-        result=res,
-        truth_phase=sim.phase,
-        truth_attenuation=sim.attenuation,
-        pixel_size_m=sim.pixel_size_m,
+    print(f"retrieved {r['computed']} projections in {r['wall_s']:.1f} s into {args.recon}")
+    return 0
+
+
+def _tomo(args) -> int:
+    from .workflow import tomo_scan
+
+    center = None if args.center_um is None else args.center_um * 1e-6
+    r = tomo_scan(args.recon, scheduler=args.scheduler, device=args.device, center_m=center)
+    print(f"tomograms delta, beta written to {args.recon} (rotation centre {r['rotation_center_m'] * 1e6:+.2f} um)")
+    return 0
+
+
+def _fsc(args) -> int:
+    from .workflow import fsc_scan
+
+    r = fsc_scan(args.recon, split=args.split, criterion=args.criterion)
+    print(f"FSC ({r['split']}, {args.criterion}): delta {r['delta'] * 1e6:.2f} um, beta {r['beta'] * 1e6:.2f} um")
+    for k in ("delta_truth", "beta_truth"):
+        if k in r:
+            print(f"FSC against the simulated truth (1/2): {k.split('_')[0]} {r[k] * 1e6:.2f} um")
+    return 0
+
+
+def _run(args) -> int:
+    from .workflow import run_scan
+
+    center = None if args.center_um is None else args.center_um * 1e-6
+    r = run_scan(
+        args.scan,
+        args.recon,
+        scheduler=args.scheduler,
+        device=args.device,
+        split=args.split,
+        center_m=center,
+        method=args.method,
+        max_iter=args.max_iter,
+        tol=args.tol,
+        gamma=args.gamma,
+        alpha=args.alpha,
     )
-    np.savez_compressed(
-        out / "projection.npz",
-        sample=sim.sample,
-        reference=sim.reference,
-        phase=res.phase,
-        attenuation=res.attenuation,
-        true_phase=sim.phase,
-        true_attenuation=sim.attenuation,
-    )
+    f = r["fsc"]
     print(
-        f"PWF: {res.iterations} iterations in {dt:.1f} s, converged={res.converged}, "
-        f"residual RMSE {res.residual_rmse:.2f} % (photon noise {100 / np.sqrt(args.photons):.2f} %)"
+        f"reconstruction {args.recon}: {r['retrieve']['computed']} projections retrieved; "
+        f"FSC delta {f['delta'] * 1e6:.2f} um, beta {f['beta'] * 1e6:.2f} um ({f['split']}, 1/4)"
     )
-    print(
-        f"coherence lengths calibrated: {res.coherence_length_x_m * 1e6:.2f} x {res.coherence_length_y_m * 1e6:.2f} um "
-        f"(simulated {sim.coherence_length_x_m * 1e6:.2f} x {sim.coherence_length_y_m * 1e6:.2f} um)"
-    )
-    print(f"phase gain {gain:.3f}, attenuation gain {gain_a:.3f} (1 = exact)")
-    print(f"wrote {fig} and {out / 'projection.npz'}")
     return 0
 
 
@@ -81,16 +163,67 @@ def _bench(args) -> int:
     raise SystemExit(f"pwf-dask bench: unknown benchmark {args.what!r}")
 
 
+def _compute_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--scheduler", default="threads", help="threads (default), processes, local, local-cuda, or tcp://HOST:PORT"
+    )
+    p.add_argument("--device", default="cpu", choices=["cpu", "gpu", "auto"], help="NumPy or CuPy numerics")
+
+
+def _retrieval_options(p: argparse.ArgumentParser) -> None:
+    from .solver import PAPER_TOL
+
+    p.add_argument("--method", default="pwf", choices=["pwf"])
+    p.add_argument("--max-iter", type=int, default=2000)
+    p.add_argument("--tol", type=float, default=PAPER_TOL, help="1 - field correlation of successive iterates")
+    p.add_argument("--gamma", type=float, default=1.0)
+    p.add_argument("--alpha", default="0.1+0.01j")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="pwf-dask", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
-    d = sub.add_parser("demo", help="simulate a projection, retrieve it with PWF, write figures")
+    s = sub.add_parser("simulate", help="simulate a scan of a 3-D phantom into a Zarr store")
+    s.add_argument("out")
+    s.add_argument("--preset", default="demo", help="demo (seconds), small (minutes), paper (801 x 2160 x 2560)")
+    s.add_argument("--shape", type=int, nargs=2, metavar=("NY", "NX"))
+    s.add_argument("--angles", type=int)
+    s.add_argument("--positions", type=int)
+    s.add_argument("--photons", type=float)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--axis-offset-px", type=float, default=0.0, help="rotation axis offset from the frame centre")
+    s.add_argument("--corrected", action="store_true", help="write flat/dark-corrected float32 instead of counts")
+    s.set_defaults(func=_simulate)
+    r = sub.add_parser("retrieve", help="phase and attenuation of every projection (resumable)")
+    r.add_argument("scan")
+    r.add_argument("recon")
+    _retrieval_options(r)
+    _compute_options(r)
+    r.set_defaults(func=_retrieve)
+    t = sub.add_parser("tomo", help="delta and beta tomograms by FBP (resumable)")
+    t.add_argument("recon")
+    t.add_argument("--center-um", type=float, help="rotation axis on detector x, um from the frame centre")
+    _compute_options(t)
+    t.set_defaults(func=_tomo)
+    f = sub.add_parser("fsc", help="Fourier shell correlation and resolution")
+    f.add_argument("recon")
+    f.add_argument("--split", default="auto", choices=["auto", "positions", "even-odd"])
+    f.add_argument("--criterion", default="1/4", choices=["1/4", "1/7", "half-bit", "1/2"])
+    f.set_defaults(func=_fsc)
+    u = sub.add_parser("run", help="retrieve + tomo + fsc")
+    u.add_argument("scan")
+    u.add_argument("recon")
+    u.add_argument("--split", default="auto", choices=["auto", "positions", "even-odd"])
+    u.add_argument("--center-um", type=float)
+    _retrieval_options(u)
+    _compute_options(u)
+    u.set_defaults(func=_run)
+    d = sub.add_parser("demo", help="simulate a small scan, reconstruct it, write figures")
     d.add_argument("dir", nargs="?", default="pwf-dask-demo", help="output folder (default ./pwf-dask-demo)")
-    d.add_argument("--size", type=int, default=384, help="detector pixels per side (default 384)")
-    d.add_argument("--photons", type=float, default=1e4, help="photons per pixel (default 1e4)")
-    d.add_argument("--max-iter", type=int, default=2000)
-    d.add_argument("--seed", type=int, default=1)
-    d.set_defaults(func=_demo)
+    d.add_argument("--max-iter", type=int, default=300)
+    d.add_argument("--seed", type=int, default=0)
+    _compute_options(d)
+    d.set_defaults(func=_scan_demo)
     b = sub.add_parser("bench", help="benchmarks; results to workflows/results/")
     b.add_argument("what", choices=["iteration"], help="iteration: PWF iteration time / FFT time per size")
     b.add_argument("--device", default="cpu", choices=["cpu", "gpu", "auto"])

@@ -74,3 +74,66 @@ def bench_ratio_plot(path: str | Path, rows: list[dict]) -> Path:
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return Path(path)
+
+
+def tomogram_panels(path: str | Path, recon) -> Path:
+    """delta and beta slices (middle row, every position) of a reconstruction dataset."""
+    plt = _mpl()
+    npos = recon.sizes["position"]
+    mid = recon.sizes["y"] // 2
+    fig, axes = plt.subplots(2, npos, figsize=(4.2 * npos, 7.2), squeeze=False)
+    u = recon["u"].values * 1e6
+    v = recon["v"].values * 1e6
+    ext = [u[0], u[-1], v[0], v[-1]]
+    for p in range(npos):
+        for row, (name, cmap) in enumerate((("delta", "gray"), ("beta", "magma"))):
+            img = recon[name][p, mid].values
+            ax = axes[row, p]
+            lo, hi = np.percentile(img, [1, 99.8])
+            im = ax.imshow(img, origin="lower", cmap=cmap, extent=ext, vmin=lo, vmax=hi)
+            ax.set_title(f"{name}, position {p}, y = {recon['y'].values[mid] * 1e6:.1f} um")
+            ax.set_xlabel("u (um)")
+            ax.set_ylabel("v (um)")
+            fig.colorbar(im, ax=ax, shrink=0.8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return Path(path)
+
+
+def fsc_plot(path: str | Path, recon) -> Path:
+    """FSC curves with their criteria and resolutions."""
+    plt = _mpl()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    f = recon["frequency"].values * 1e-6
+    for ax, name in zip(axes, ("delta", "beta")):
+        da = recon[f"fsc_{name}"]
+        for i in range(da.sizes["split"]):
+            ax.plot(f, da[i].values, color="C0", alpha=0.4)
+        ax.plot(
+            f,
+            da.values.mean(axis=0),
+            color="C0",
+            lw=2,
+            label=f"{da.attrs['split']}: {da.attrs['resolution_m'] * 1e6:.2f} um at {da.attrs['criterion']}",
+        )
+        ax.axhline(0.25, color="C0", ls=":")
+        if f"fsc_{name}_truth" in recon:
+            t = recon[f"fsc_{name}_truth"]
+            ax.plot(
+                f,
+                t.values.mean(axis=0),
+                color="C1",
+                lw=2,
+                label=f"vs truth: {t.attrs['resolution_m'] * 1e6:.2f} um at 1/2",
+            )
+            ax.axhline(0.5, color="C1", ls=":")
+        ax.set_xlabel("spatial frequency (cycles/um)")
+        ax.set_ylabel("FSC")
+        ax.set_title(name)
+        ax.set_ylim(-0.2, 1.05)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return Path(path)

@@ -140,12 +140,22 @@ def open_scan(path: str | Path, check_values: bool = True):
     x = np.asarray(ds["x"].values, np.float64) if "x" in ds.coords else (np.arange(nx) - (nx - 1) / 2) * p
     y = np.asarray(ds["y"].values, np.float64) if "y" in ds.coords else (np.arange(ny) - (ny - 1) / 2) * p
     info = ScanInfo(
-        path=path, n_positions=npos, angles_deg=angles, shape=(ny, nx), x_m=x, y_m=y,
-        energy_eV=vals["energy_eV"], pixel_size_m=p,
+        path=path,
+        n_positions=npos,
+        angles_deg=angles,
+        shape=(ny, nx),
+        x_m=x,
+        y_m=y,
+        energy_eV=vals["energy_eV"],
+        pixel_size_m=p,
         sample_diffuser_distance_m=vals["sample_diffuser_distance_m"],
         diffuser_detector_distance_m=vals["diffuser_detector_distance_m"],
-        coherence_length_x_m=coh[0], coherence_length_y_m=coh[1], flat_dark_corrected=corrected,
-        has_flat="flat" in ds, has_dark="dark" in ds, attrs=attrs,
+        coherence_length_x_m=coh[0],
+        coherence_length_y_m=coh[1],
+        flat_dark_corrected=corrected,
+        has_flat="flat" in ds,
+        has_dark="dark" in ds,
+        attrs=attrs,
     )
     if check_values:
         check_scan_values(ds, info)
@@ -194,8 +204,19 @@ def _create(group, name, shape, chunks, dims, dtype, fill, data=None):
 
 
 RECON_KEYS = (
-    "method", "gamma", "alpha", "step", "tol", "max_iter", "coherence_length_x_m", "coherence_length_y_m",
-    "precision", "upsample", "pad", "normalization", "preconditioner",
+    "method",
+    "gamma",
+    "alpha",
+    "step",
+    "tol",
+    "max_iter",
+    "coherence_length_x_m",
+    "coherence_length_y_m",
+    "precision",
+    "upsample",
+    "pad",
+    "normalization",
+    "preconditioner",
 )
 
 
@@ -212,7 +233,7 @@ def create_reconstruction(path: str | Path, info: ScanInfo, params: dict):
     ny, nx = info.shape
     if Path(path).exists():
         try:
-            g = zarr.open_group(path, mode="r+")
+            g = zarr.open_group(path, mode="r+", use_consolidated=False)
         except Exception as exc:
             raise ScanError(f"{path}: exists and is not a reconstruction store ({exc})") from None
         old = json.loads(g.attrs.get("pwf_dask_parameters", "{}"))
@@ -254,27 +275,69 @@ def consolidate(path: str | Path) -> None:
         zarr.consolidate_metadata(str(path))
 
 
-def write_scan(path: str | Path, projections, reference, angles_deg, attrs: dict, *, flat=None, dark=None,
-               pixel_size_m: float, x_m=None, chunk_angles: int = 1) -> None:
-    """Write a scan store (CONTRACT §1) from arrays: one chunk per angle and whole frames."""
+def create_scan(
+    path: str | Path,
+    *,
+    n_positions: int,
+    angles_deg,
+    shape: tuple[int, int],
+    pixel_size_m: float,
+    dtype,
+    attrs: dict,
+    flat_dark: bool = False,
+    x_m=None,
+):
+    """An empty scan store (CONTRACT §1), one chunk per angle and whole frames; returns the group."""
     import zarr
 
-    proj = np.asarray(projections)
-    npos, nang, ny, nx = proj.shape
+    ny, nx = shape
+    nang = len(angles_deg)
     g = zarr.open_group(str(path), mode="w")
     x = x_m if x_m is not None else (np.arange(nx) - (nx - 1) / 2) * pixel_size_m
     y = (np.arange(ny) - (ny - 1) / 2) * pixel_size_m
-    _create(g, "position", (npos,), (npos,), ("position",), "int64", 0, np.arange(npos))
+    _create(g, "position", (n_positions,), (n_positions,), ("position",), "int64", 0, np.arange(n_positions))
     _create(g, "angle", (nang,), (nang,), ("angle",), "float64", 0.0, np.asarray(angles_deg, np.float64))
     _create(g, "y", (ny,), (ny,), ("y",), "float64", 0.0, y)
     _create(g, "x", (nx,), (nx,), ("x",), "float64", 0.0, np.asarray(x, np.float64))
-    _create(g, "projections", proj.shape, (1, chunk_angles, ny, nx), ("position", "angle", "y", "x"),
-            proj.dtype, 0, proj)
-    ref = np.asarray(reference)
-    _create(g, "reference", ref.shape, (1, ny, nx), ("position", "y", "x"), ref.dtype, 0, ref)
+    _create(g, "projections", (n_positions, nang, ny, nx), (1, 1, ny, nx), ("position", "angle", "y", "x"), dtype, 0)
+    _create(g, "reference", (n_positions, ny, nx), (1, ny, nx), ("position", "y", "x"), dtype, 0)
+    if flat_dark:
+        for name in ("flat", "dark"):
+            _create(g, name, (ny, nx), (ny, nx), ("y", "x"), dtype, 0)
+    g.attrs.update(attrs)
+    return g
+
+
+def write_scan(
+    path: str | Path,
+    projections,
+    reference,
+    angles_deg,
+    attrs: dict,
+    *,
+    flat=None,
+    dark=None,
+    pixel_size_m: float,
+    x_m=None,
+) -> None:
+    """Write a whole scan store from in-memory arrays (small scans, tests)."""
+    proj = np.asarray(projections)
+    npos, _, ny, nx = proj.shape
+    g = create_scan(
+        path,
+        n_positions=npos,
+        angles_deg=angles_deg,
+        shape=(ny, nx),
+        pixel_size_m=pixel_size_m,
+        dtype=proj.dtype,
+        attrs=attrs,
+        flat_dark=False,
+        x_m=x_m,
+    )
+    g["projections"][...] = proj
+    g["reference"][...] = np.asarray(reference)
     for name, a in (("flat", flat), ("dark", dark)):
         if a is not None:
             a = np.asarray(a)
             _create(g, name, a.shape, a.shape, ("y", "x"), a.dtype, 0, a)
-    g.attrs.update(attrs)
     consolidate(path)

@@ -46,8 +46,14 @@ def angle_weights(angles_deg) -> np.ndarray:
     return w
 
 
-def filtered_back_projection(sinogram, angles_deg, pixel_size_m: float, center_offset_m: float = 0.0,
-                             n_out: int | None = None, fft: FFT | None = None):
+def filtered_back_projection(
+    sinogram,
+    angles_deg,
+    pixel_size_m: float,
+    center_offset_m: float = 0.0,
+    n_out: int | None = None,
+    fft: FFT | None = None,
+):
     """FBP of sinograms (angle, row, x) -> slices (row, v, u), values per metre.
 
     ``center_offset_m`` is the rotation axis position on the detector x coordinate (0: the
@@ -62,8 +68,12 @@ def filtered_back_projection(sinogram, angles_deg, pixel_size_m: float, center_o
     import scipy.fft as sfft
 
     if xp is np:
-        q = sfft.irfft(sfft.rfft(sino, n=size, axis=-1, workers=fft.workers) * ramlak_filter(nx), n=size, axis=-1,
-                       workers=fft.workers)[..., :nx]
+        q = sfft.irfft(
+            sfft.rfft(sino, n=size, axis=-1, workers=fft.workers) * ramlak_filter(nx),
+            n=size,
+            axis=-1,
+            workers=fft.workers,
+        )[..., :nx]
     else:
         q = xp.fft.irfft(xp.fft.rfft(sino, n=size, axis=-1) * ramlak_filter(nx, xp), n=size, axis=-1)[..., :nx]
     w = angle_weights(angles_deg)

@@ -1,0 +1,399 @@
+"""The scan pipeline on Dask: retrieval per angle, tomography per row block, FSC (CONTRACT §2).
+
+Every stage reads and writes the reconstruction store (:mod:`pwf_dask.scan_io`) and is
+resumable: retrieval recomputes only projections whose ``iterations`` is still -1 (written
+last by each task, after its phase and attenuation chunks); tomography recomputes only row
+blocks whose ``tomo_done`` flag is 0. A killed run loses at most the tasks in flight.
+Dask appears here and in :mod:`pwf_dask.cluster` only; the numerics stay pure functions.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__, calibration, fsc, scan_io, tomography
+from .backend import resolve_device, to_numpy
+from .cluster import Runner, worker_fft_threads
+from .optics import wavelength_m
+from .retrieval import METHODS
+from .solver import PAPER_TOL
+
+
+def _read_corrected(g, name, index, flat, dark, corrected):
+    return scan_io.correct(g[name][index], flat, dark, corrected)
+
+
+def _scan_frames(scan_path):
+    import zarr
+
+    g = zarr.open_group(str(scan_path), mode="r")
+    corrected = bool(g.attrs.get("flat_dark_corrected", False))
+    flat = g["flat"][...] if "flat" in g else None
+    dark = g["dark"][...] if "dark" in g else None
+    return g, flat, dark, corrected
+
+
+def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers, coherence):
+    """One projection: read, correct, retrieve, write its chunks, then its diagnostics."""
+    import zarr
+
+    from .retrieval import retrieve_projection
+
+    p, a = item
+    t0 = time.perf_counter()
+    g, flat, dark, corrected = _scan_frames(scan_path)
+    sample = _read_corrected(g, "projections", (p, a), flat, dark, corrected)
+    reference = _read_corrected(g, "reference", p, flat, dark, corrected)
+    xp = resolve_device(device)
+    res = retrieve_projection(
+        xp.asarray(sample),
+        xp.asarray(reference),
+        energy_eV=float(g.attrs["energy_eV"]),
+        pixel_size_m=float(g.attrs["pixel_size_m"]),
+        sample_diffuser_distance_m=float(g.attrs["sample_diffuser_distance_m"]),
+        diffuser_detector_distance_m=float(g.attrs["diffuser_detector_distance_m"]),
+        coherence_length_x_m=coherence[p][0],
+        coherence_length_y_m=coherence[p][1],
+        fft_workers=worker_fft_threads(fft_workers),
+        **options,
+    )
+    out = zarr.open_group(str(recon_path), mode="r+", use_consolidated=False)
+    out["phase"][p, a] = to_numpy(res.phase).astype(np.float32)
+    out["attenuation"][p, a] = to_numpy(res.attenuation).astype(np.float32)
+    out["converged"][p, a] = bool(res.converged)
+    out["residual_rmse"][p, a] = np.float32(res.residual_rmse)
+    out["iterations"][p, a] = np.int32(res.iterations)  # last: marks the projection done
+    return p, a, res.iterations, res.converged, res.residual_rmse, time.perf_counter() - t0
+
+
+def retrieve_scan(
+    scan_path,
+    recon_path,
+    *,
+    scheduler: str = "threads",
+    device: str = "cpu",
+    method: str = "pwf",
+    max_iter: int = 2000,
+    tol: float = PAPER_TOL,
+    gamma: float = 1.0,
+    alpha="0.1+0.01j",
+    step: float = 1.0,
+    precision: str = "single",
+    runner: Runner | None = None,
+    **options,
+) -> dict:
+    """Retrieval stage: every missing (position, angle) projection, one task each."""
+    import zarr
+
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
+    resolve_device(device)  # fail early on --device gpu without CuPy
+    alpha_c = complex(str(alpha).replace(" ", "")) if not isinstance(alpha, complex) else alpha
+    ds, info = scan_io.open_scan(scan_path)
+    g, flat, dark, corrected = _scan_frames(scan_path)
+    coherence = []
+    for p in range(info.n_positions):
+        cx, cy = info.coherence_length_x_m, info.coherence_length_y_m
+        if cx is None or cy is None:
+            ref = _read_corrected(g, "reference", p, flat, dark, corrected)
+            fx, fy = calibration.coherence_lengths(ref, info.pixel_size_m)
+            cx = fx if cx is None else cx
+            cy = fy if cy is None else cy
+        coherence.append((float(cx), float(cy)))
+    params = {
+        "method": method,
+        "gamma": float(gamma),
+        "alpha": str(alpha_c).strip("()"),
+        "step": float(step),
+        "tol": float(tol),
+        "max_iter": int(max_iter),
+        "precision": precision,
+        "device": device,
+        "coherence_length_x_m": float(np.mean([c[0] for c in coherence])),
+        "coherence_length_y_m": float(np.mean([c[1] for c in coherence])),
+        "coherence_lengths_per_position_m": json.dumps(coherence),
+        "coherence_calibrated": info.coherence_length_x_m is None or info.coherence_length_y_m is None,
+        "pwf_dask_version": __version__,
+        **{k: v for k, v in options.items() if isinstance(v, (int, float, str, bool))},
+    }
+    grp = scan_io.create_reconstruction(recon_path, info, params)
+    done = grp["iterations"][...]
+    todo = [(int(p), int(a)) for p, a in zip(*np.nonzero(done < 0))]
+    print(
+        f"retrieve: {len(todo)} of {done.size} projections to compute ({done.size - len(todo)} already done)",
+        file=sys.stderr,
+    )
+    opts = dict(
+        method=method, max_iter=max_iter, tol=tol, gamma=gamma, alpha=alpha_c, step=step, precision=precision, **options
+    )
+    t0 = time.perf_counter()
+    own = runner is None
+    runner = runner or Runner(scheduler)
+    try:
+        results = runner.map(
+            _retrieve_task,
+            todo,
+            label="retrieval tasks",
+            scan_path=str(scan_path),
+            recon_path=str(recon_path),
+            options=opts,
+            device=device,
+            fft_workers=runner.fft_workers(),
+            coherence=coherence,
+        )
+    finally:
+        if own:
+            runner.close()
+    wall = time.perf_counter() - t0
+    grp = zarr.open_group(str(recon_path), mode="r+", use_consolidated=False)
+    if results:
+        grp.attrs["retrieval_wall_s"] = wall
+        grp.attrs["retrieval_task_s_mean"] = float(np.mean([r[-1] for r in results]))
+    scan_io.consolidate(recon_path)
+    return {"computed": len(results), "wall_s": wall, "coherence": coherence}
+
+
+# --- tomography -------------------------------------------------------------------------
+
+
+def _tomo_task(item, *, recon_path, center_m, device, fft_workers):
+    import zarr
+
+    from .backend import FFT
+
+    p, b = item
+    g = zarr.open_group(str(recon_path), mode="r+", use_consolidated=False)
+    rb = g["delta"].chunks[1]
+    ny = g["delta"].shape[1]
+    rows = slice(b * rb, min(ny, (b + 1) * rb))
+    xp = resolve_device(device)
+    fft = FFT.for_module(xp, worker_fft_threads(fft_workers))
+    angles = g["angle"][...]
+    pix = float(g.attrs["pixel_size_m"])
+    wl = wavelength_m(float(g.attrs["energy_eV"]))
+    out = {}
+    for name in ("phase", "attenuation"):
+        sino = xp.asarray(g[name][p, :, rows, :])
+        out[name] = to_numpy(tomography.filtered_back_projection(sino, angles, pix, center_m, fft=fft))
+    delta, beta = tomography.to_refractive_index(out["phase"], out["attenuation"], wl)
+    g["delta"][p, rows] = tomography.remove_background(delta).astype(np.float32)
+    g["beta"][p, rows] = tomography.remove_background(beta).astype(np.float32)
+    g["tomo_done"][p, b] = 1
+    return p, b
+
+
+def rotation_center(recon_path) -> float:
+    """Estimate the rotation axis from the -phase sinograms of the middle row block of position 0."""
+    import zarr
+
+    g = zarr.open_group(str(recon_path), mode="r", use_consolidated=False)
+    ny = g["phase"].shape[2]
+    rb = g["phase"].chunks[2]
+    mid = (ny // 2) // rb * rb
+    sino = -g["phase"][0, :, mid : mid + rb, :]
+    return tomography.estimate_rotation_center(sino, g["angle"][...], float(g.attrs["pixel_size_m"]))
+
+
+def tomo_scan(
+    recon_path,
+    *,
+    scheduler: str = "threads",
+    device: str = "cpu",
+    center_m: float | None = None,
+    runner: Runner | None = None,
+) -> dict:
+    """Tomography stage: FBP of phase and attenuation per (position, row block) -> delta, beta."""
+    import zarr
+
+    path = str(recon_path)
+    if not Path(path).exists():
+        raise scan_io.ScanError(f"{path}: no such reconstruction store; run 'pwf-dask retrieve' first")
+    g = zarr.open_group(path, mode="r+", use_consolidated=False)
+    if "phase" not in g:
+        raise scan_io.ScanError(f"{path}: not a reconstruction store (no 'phase')")
+    missing = int((g["iterations"][...] < 0).sum())
+    if missing:
+        raise scan_io.ScanError(
+            f"{path}: retrieval incomplete ({missing} projections missing); rerun 'pwf-dask retrieve'"
+        )
+    npos, nang, ny, nx = g["phase"].shape
+    rb = g["phase"].chunks[2]
+    estimated = center_m is None
+    if estimated:
+        center_m = rotation_center(path)
+    if "delta" not in g or float(g.attrs.get("rotation_center_m", np.nan)) != float(center_m):
+        p = float(g.attrs["pixel_size_m"])
+        coords = (np.arange(nx) - (nx - 1) / 2) * p
+        scan_io._create(g, "v", (nx,), (nx,), ("v",), "float64", 0.0, coords)
+        scan_io._create(g, "u", (nx,), (nx,), ("u",), "float64", 0.0, coords)
+        for name in ("delta", "beta"):
+            scan_io._create(
+                g, name, (npos, ny, nx, nx), (1, rb, nx, nx), ("position", "y", "v", "u"), "float32", np.nan
+            )
+        nblocks = -(-ny // rb)
+        scan_io._create(g, "tomo_done", (npos, nblocks), (1, 1), ("position", "row_block"), "int8", 0)
+        g.attrs.update(
+            {
+                "rotation_center_m": float(center_m),
+                "rotation_center_estimated": estimated,
+                "filter": "ram-lak",
+                "background_removal": "quadratic surface per slice",
+            }
+        )
+    done = g["tomo_done"][...]
+    todo = [(int(p), int(b)) for p, b in zip(*np.nonzero(done == 0))]
+    print(
+        f"tomo: rotation centre {center_m * 1e6:+.2f} um ({'estimated' if estimated else 'given'}); "
+        f"{len(todo)} of {done.size} slice blocks to compute",
+        file=sys.stderr,
+    )
+    own = runner is None
+    runner = runner or Runner(scheduler)
+    try:
+        runner.map(
+            _tomo_task,
+            todo,
+            label="tomography tasks",
+            recon_path=path,
+            center_m=float(center_m),
+            device=device,
+            fft_workers=runner.fft_workers(),
+        )
+    finally:
+        if own:
+            runner.close()
+    scan_io.consolidate(path)
+    return {"computed": len(todo), "rotation_center_m": float(center_m)}
+
+
+# --- FSC --------------------------------------------------------------------------------
+
+
+def _even_odd_volumes(g, name, p, center_m, wl, sign):
+    angles = g["angle"][...]
+    order = np.argsort(angles)
+    halves = (np.sort(order[0::2]), np.sort(order[1::2]))
+    pix = float(g.attrs["pixel_size_m"])
+    vols = []
+    for idx in halves:
+        sino = g[name][p][idx]
+        vol = tomography.filtered_back_projection(sino, angles[idx], pix, center_m)
+        vols.append(tomography.remove_background(sign * wl / (2 * np.pi) * vol))
+    return vols
+
+
+def fsc_scan(recon_path, *, split: str = "auto", criterion: str = "1/4", pairs: int = 5, seed: int = 0) -> dict:
+    """FSC stage: between tomograms of diffuser positions (random pairs, averaged; the
+    paper's procedure) or of even/odd angle halves (K = 1), plus against the truth of a
+    simulated scan (criterion 1/2). Writes fsc_delta, fsc_beta (split, frequency)."""
+    import zarr
+
+    path = str(recon_path)
+    g = zarr.open_group(path, mode="r+", use_consolidated=False)
+    if "delta" not in g or int(g["tomo_done"][...].min()) == 0:
+        raise scan_io.ScanError(f"{path}: tomograms incomplete; run 'pwf-dask tomo' first")
+    if criterion not in fsc.CRITERIA:
+        raise ValueError(f"unknown criterion {criterion!r}; choose one of {', '.join(fsc.CRITERIA)}")
+    npos = g["delta"].shape[0]
+    if split == "auto":
+        split = "positions" if npos >= 2 else "even-odd"
+    if split == "positions" and npos < 2:
+        raise ValueError("FSC split 'positions' needs K >= 2 diffuser positions; use --split even-odd")
+    pix = float(g.attrs["pixel_size_m"])
+    wl = wavelength_m(float(g.attrs["energy_eV"]))
+    center = float(g.attrs["rotation_center_m"])
+    curves: dict[str, list] = {"delta": [], "beta": []}
+    labels = []
+    if split == "positions":
+        all_pairs = [(i, j) for i in range(npos) for j in range(i + 1, npos)]
+        rng = np.random.default_rng(seed)
+        chosen = (
+            all_pairs
+            if len(all_pairs) <= pairs
+            else [all_pairs[k] for k in rng.choice(len(all_pairs), pairs, replace=False)]
+        )
+        for i, j in chosen:
+            for name in ("delta", "beta"):
+                f, c, n = fsc.fourier_shell_correlation(g[name][i], g[name][j], pix)
+                curves[name].append(c)
+            labels.append(f"positions {i}-{j}")
+    elif split == "even-odd":
+        for p in range(npos):
+            for name, src, sign in (("delta", "phase", -1.0), ("beta", "attenuation", 1.0)):
+                a, b = _even_odd_volumes(g, src, p, center, wl, sign)
+                f, c, n = fsc.fourier_shell_correlation(a, b, pix)
+                curves[name].append(c)
+            labels.append(f"position {p} even-odd angles")
+    else:
+        raise ValueError(f"unknown FSC split {split!r}: use positions or even-odd")
+    nf = len(f)
+    scan_io._create(g, "split", (len(labels),), (len(labels),), ("split",), "int64", 0, np.arange(len(labels)))
+    scan_io._create(g, "frequency", (nf,), (nf,), ("frequency",), "float64", 0.0, f)
+    summary = {"split": split, "labels": labels}
+    for name in ("delta", "beta"):
+        arr = np.array(curves[name])
+        mean = arr.mean(axis=0)
+        res = {c: fsc.resolution(f, mean, n, c) for c in ("1/4", "1/7", "half-bit")}
+        a = scan_io._create(g, f"fsc_{name}", arr.shape, arr.shape, ("split", "frequency"), "float64", np.nan, arr)
+        a.attrs.update(
+            {
+                "criterion": criterion,
+                "resolution_m": res[criterion],
+                "split": split,
+                "labels": json.dumps(labels),
+                "resolution_m_1_4": res["1/4"],
+                "resolution_m_1_7": res["1/7"],
+                "resolution_m_half_bit": res["half-bit"],
+            }
+        )
+        summary[name] = res[criterion]
+    if "simulation_phantom" in g.attrs:
+        summary.update(_fsc_truth(g, f, pix))
+    scan_io.consolidate(path)
+    return summary
+
+
+def _fsc_truth(g, freq, pix) -> dict:
+    """FSC of each position's tomograms against the simulated truth (criterion 1/2)."""
+    from .simulation import phantom_from_json, refractive_index_volume
+
+    phantom = phantom_from_json(g.attrs["simulation_phantom"])
+    truth = refractive_index_volume(phantom, g["y"][...], g["v"][...], g["u"][...], float(g.attrs["energy_eV"]))
+    npos = g["delta"].shape[0]
+    out = {}
+    for name, t in zip(("delta", "beta"), truth):
+        rows = []
+        for p in range(npos):
+            f, c, n = fsc.fourier_shell_correlation(g[name][p], t, pix)
+            rows.append(c)
+        arr = np.array(rows)
+        res = fsc.resolution(f, arr.mean(axis=0), n, "1/2")
+        a = scan_io._create(
+            g, f"fsc_{name}_truth", arr.shape, arr.shape, ("position", "frequency"), "float64", np.nan, arr
+        )
+        a.attrs.update({"criterion": "1/2", "resolution_m": res})
+        out[f"{name}_truth"] = res
+    return out
+
+
+def run_scan(
+    scan_path,
+    recon_path,
+    *,
+    scheduler: str = "threads",
+    device: str = "cpu",
+    split: str = "auto",
+    center_m: float | None = None,
+    **retrieve_options,
+) -> dict:
+    """All stages on one scheduler connection: retrieve, tomo, fsc."""
+    with Runner(scheduler) as runner:
+        r = retrieve_scan(scan_path, recon_path, scheduler=scheduler, device=device, runner=runner, **retrieve_options)
+        t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner)
+    f = fsc_scan(recon_path, split=split)
+    return {"retrieve": r, "tomo": t, "fsc": f}
