@@ -80,6 +80,39 @@ def correct(raw, flat=None, dark=None, corrected: bool = False):
     return a
 
 
+def _check_layout(path: str) -> None:
+    """Variables, dims and shapes from the Zarr metadata, before xarray (which cannot even open
+    a store whose arrays disagree on a dimension's length)."""
+    import zarr
+
+    try:
+        g = zarr.open_group(path, mode="r", use_consolidated=False)
+    except Exception as exc:
+        raise ScanError(f"{path}: not a Zarr store ({type(exc).__name__})") from None
+    names = set(g.array_keys())
+    for name in ("projections", "reference"):
+        if name not in names:
+            raise ScanError(f"{path}: missing variable {name!r}")
+
+    def dims(name):
+        d = getattr(g[name].metadata, "dimension_names", None) or g[name].attrs.get("_ARRAY_DIMENSIONS")
+        return tuple(d) if d else None
+
+    if dims("projections") != ("position", "angle", "y", "x"):
+        raise ScanError(f"{path}: projections has dims {dims('projections')}, expected (position, angle, y, x)")
+    if dims("reference") != ("position", "y", "x"):
+        raise ScanError(f"{path}: reference has dims {dims('reference')}, expected (position, y, x)")
+    npos, nang, ny, nx = g["projections"].shape
+    if tuple(g["reference"].shape) != (npos, ny, nx):
+        raise ScanError(
+            f"{path}: reference shape {tuple(g['reference'].shape)} does not match projections (position, y, x) = "
+            f"{(npos, ny, nx)}"
+        )
+    for name in ("flat", "dark"):
+        if name in names and tuple(g[name].shape) != (ny, nx):
+            raise ScanError(f"{path}: {name} shape {tuple(g[name].shape)} is not (y, x) = {(ny, nx)}")
+
+
 def open_scan(path: str | Path, check_values: bool = True):
     """Open and validate a scan store. Returns (dataset, ScanInfo); raises ScanError."""
     import xarray as xr
@@ -87,26 +120,12 @@ def open_scan(path: str | Path, check_values: bool = True):
     path = str(path)
     if not Path(path).exists():
         raise ScanError(f"{path}: no such scan store")
+    _check_layout(path)
     try:
         ds = xr.open_zarr(path, consolidated=None)
     except Exception as exc:  # zarr/xarray raise many types for a broken store
         raise ScanError(f"{path}: not a readable Zarr dataset ({type(exc).__name__}: {exc})") from None
-    for name in ("projections", "reference"):
-        if name not in ds:
-            raise ScanError(f"{path}: missing variable {name!r}")
-    if ds["projections"].dims != ("position", "angle", "y", "x"):
-        raise ScanError(f"{path}: projections has dims {ds['projections'].dims}, expected (position, angle, y, x)")
-    if ds["reference"].dims != ("position", "y", "x"):
-        raise ScanError(f"{path}: reference has dims {ds['reference'].dims}, expected (position, y, x)")
     npos, nang, ny, nx = ds["projections"].shape
-    if ds["reference"].shape != (npos, ny, nx):
-        raise ScanError(
-            f"{path}: reference shape {ds['reference'].shape} does not match projections (position, y, x) = "
-            f"{(npos, ny, nx)}"
-        )
-    for name in ("flat", "dark"):
-        if name in ds and ds[name].shape != (ny, nx):
-            raise ScanError(f"{path}: {name} shape {ds[name].shape} is not (y, x) = {(ny, nx)}")
     if "angle" not in ds.coords:
         raise ScanError(f"{path}: missing coordinate 'angle' (degrees)")
     angles = np.asarray(ds["angle"].values, dtype=np.float64)

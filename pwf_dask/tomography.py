@@ -64,18 +64,20 @@ def filtered_back_projection(
     sino = xp.asarray(sinogram, dtype=xp.float32)
     na, nr, nx = sino.shape
     n_out = n_out or nx
-    size = pad_len(nx)
-    import scipy.fft as sfft
-
+    # Edge padding before the ramp filter (as tomopy does): a projection that does not fall to
+    # zero at the frame edge would otherwise ring at radius FOV/2.
+    edge = nx // 2
+    sino_p = xp.pad(sino, ((0, 0), (0, 0), (edge, edge)), mode="edge")
+    npad = nx + 2 * edge
+    size = pad_len(npad)
     if xp is np:
-        q = sfft.irfft(
-            sfft.rfft(sino, n=size, axis=-1, workers=fft.workers) * ramlak_filter(nx),
-            n=size,
-            axis=-1,
-            workers=fft.workers,
-        )[..., :nx]
+        import scipy.fft as sfft
+
+        spec = sfft.rfft(sino_p, n=size, axis=-1, workers=fft.workers) * ramlak_filter(npad)
+        q = sfft.irfft(spec, n=size, axis=-1, workers=fft.workers)[..., edge : edge + nx]
     else:
-        q = xp.fft.irfft(xp.fft.rfft(sino, n=size, axis=-1) * ramlak_filter(nx, xp), n=size, axis=-1)[..., :nx]
+        spec = xp.fft.rfft(sino_p, n=size, axis=-1) * ramlak_filter(npad, xp)
+        q = xp.fft.irfft(spec, n=size, axis=-1)[..., edge : edge + nx]
     w = angle_weights(angles_deg)
     coords = (np.arange(n_out) - (n_out - 1) / 2) * pixel_size_m
     u = xp.asarray(coords[None, :])
