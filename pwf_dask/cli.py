@@ -160,6 +160,12 @@ def _bench(args) -> int:
         run_iteration_benchmark(args.out, device=args.device, quick=args.quick)
         print(f"results written to {args.out}")
         return 0
+    if args.what == "scan":
+        from .bench import run_scan_benchmark
+
+        run_scan_benchmark(args.out)
+        print(f"results written to {args.out}")
+        return 0
     raise SystemExit(f"pwf-dask bench: unknown benchmark {args.what!r}")
 
 
@@ -225,7 +231,11 @@ def build_parser() -> argparse.ArgumentParser:
     _compute_options(d)
     d.set_defaults(func=_scan_demo)
     b = sub.add_parser("bench", help="benchmarks; results to workflows/results/")
-    b.add_argument("what", choices=["iteration"], help="iteration: PWF iteration time / FFT time per size")
+    b.add_argument(
+        "what",
+        choices=["iteration", "scan"],
+        help="iteration: PWF iteration time / FFT time per size; scan: throughput per worker",
+    )
     b.add_argument("--device", default="cpu", choices=["cpu", "gpu", "auto"])
     b.add_argument("--out", default="workflows/results")
     b.add_argument("--quick", action="store_true", help="one small size (smoke test)")

@@ -68,7 +68,14 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
     out["converged"][p, a] = bool(res.converged)
     out["residual_rmse"][p, a] = np.float32(res.residual_rmse)
     out["iterations"][p, a] = np.int32(res.iterations)  # last: marks the projection done
-    return p, a, res.iterations, res.converged, res.residual_rmse, time.perf_counter() - t0
+    return p, a, res.iterations, res.converged, res.residual_rmse, time.perf_counter() - t0, _peak_rss_mb()
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this process (MB): the worker's, on distributed."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def retrieve_scan(
@@ -153,9 +160,9 @@ def retrieve_scan(
     grp = zarr.open_group(str(recon_path), mode="r+", use_consolidated=False)
     if results:
         grp.attrs["retrieval_wall_s"] = wall
-        grp.attrs["retrieval_task_s_mean"] = float(np.mean([r[-1] for r in results]))
+        grp.attrs["retrieval_task_s_mean"] = float(np.mean([r[5] for r in results]))
     scan_io.consolidate(recon_path)
-    return {"computed": len(results), "wall_s": wall, "coherence": coherence}
+    return {"computed": len(results), "wall_s": wall, "coherence": coherence, "tasks": results}
 
 
 # --- tomography -------------------------------------------------------------------------
