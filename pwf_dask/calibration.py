@@ -118,6 +118,7 @@ def diffuser_transmission(
     pad: int = 0,
     shape: tuple[int, int] | None = None,
     nsr: float | None = None,
+    phase_screen_iter: int = 0,
     fft: FFT | None = None,
 ):
     """Diffuser transmission t_r (Methods, Diffuser transmission function).
@@ -147,4 +148,29 @@ def diffuser_transmission(
     intensity = fft.irfft2(spec, s=shape)
     amplitude = xp.sqrt(xp.clip(intensity, 0, None)).astype(xp.complex128)
     t = optics.angular_spectrum_propagate(amplitude, pixel_size_m, wavelength, -diffuser_detector_distance_m, fft)
+    if phase_screen_iter:
+        t = refine_phase_screen(t, amplitude.real, pixel_size_m, wavelength, diffuser_detector_distance_m,
+                                phase_screen_iter, fft)
+    return t
+
+
+def refine_phase_screen(t, detector_amplitude, pixel_size_m, wavelength, distance_m, iterations, fft=None):
+    """Gerchberg-Saxton refinement of the zero-phase diffuser estimate towards a phase screen.
+
+    The zero-phase estimate reproduces the reference at exactly L2 but is strongly
+    amplitude-modulated at the diffuser (max|t|^2 ~ 6 on sandpaper), unlike a real abrasive
+    layer (|t| <= 1, nearly pure phase). Alternating |t| = mean|t| at the diffuser with the
+    measured amplitude at the detector gives a screen that also behaves like the real one at
+    other distances, which is what the sample's lens-like curvature probes.
+    """
+    xp = get_array_module(t)
+    fft = fft or FFT.for_module(xp)
+    k = optics.angular_spectrum_kernel(t.shape, pixel_size_m, wavelength, distance_m, xp, t.dtype)
+    kc = xp.conj(k)
+    level = float(xp.mean(xp.abs(t)))
+    for _ in range(iterations):
+        t = level * xp.exp(1j * xp.angle(t))
+        v = fft.ifft2(fft.fft2(t) * k)
+        v = detector_amplitude * xp.exp(1j * xp.angle(v))
+        t = fft.ifft2(fft.fft2(v) * kc)
     return t

@@ -94,6 +94,8 @@ def retrieve_projection(
     pad: int | str = "auto",
     min_iter: int = 50,
     patience: int = 10,
+    rtol: float = 1e-3,
+    phase_screen_iter: int = 0,
     background_mask=None,
     zero_background: bool = True,
     normalization: str = "paper",
@@ -158,6 +160,7 @@ def retrieve_projection(
         coherence_length_y_m=coherence_length_y_m,
         pad=pad,
         shape=shape,
+        phase_screen_iter=phase_screen_iter,
         fft=fft,
     )
     model = solver.build_model(
@@ -191,6 +194,7 @@ def retrieve_projection(
         min_iter=min_iter,
         patience=patience,
         step_search=step_search,
+        rtol=rtol,
     )
     psi = sol.psi[model.frame]
     phase = to_numpy(psi.imag).astype(np.float64)
@@ -217,6 +221,7 @@ def retrieve_projection(
         "max_iter": max_iter,
         "min_iter": min_iter,
         "patience": patience,
+        "rtol": rtol,
         "preconditioner": preconditioner,
         "precision": precision,
         "normalization": normalization,

@@ -121,6 +121,37 @@ def estimate_rotation_center(sinogram, angles_deg, pixel_size_m: float) -> float
     return float(coef[0])
 
 
+def rotation_center_from_opposite(sinogram, angles_deg, pixel_size_m: float) -> float | None:
+    """Rotation axis (m from the frame centre) from a projection pair 180 degrees apart, or None.
+
+    p_180(x) = p_0(2c - x), so p_180 mirrored about the frame centre is p_0 shifted by 2c;
+    the shift comes from the cross-correlation peak (parabola through its three top samples).
+    Gradients are correlated, not values, so a constant background does not matter.
+    """
+    ang = np.asarray(angles_deg, np.float64)
+    step = np.median(np.diff(np.sort(ang))) if ang.size > 1 else 0.0
+    best = None
+    for i in range(ang.size):
+        j = int(np.argmin(np.abs(ang - ang[i] - 180.0)))
+        err = abs(ang[j] - ang[i] - 180.0)
+        if err <= 0.25 * step + 1e-9 and (best is None or err < best[2]):
+            best = (i, j, err)
+    if best is None:
+        return None
+    s = np.asarray(sinogram, np.float64)
+    a = np.gradient(s[best[0]].mean(axis=0))
+    b = np.gradient(s[best[1]].mean(axis=0)[::-1])
+    n = a.size
+    xc = np.fft.irfft(np.fft.rfft(b, 2 * n) * np.conj(np.fft.rfft(a, 2 * n)), 2 * n)
+    k = int(np.argmax(xc))
+    y0, y1, y2 = xc[k - 1], xc[k], xc[(k + 1) % (2 * n)]
+    den = y0 - 2 * y1 + y2
+    frac = 0.5 * (y0 - y2) / den if den != 0 else 0.0
+    shift = (k + frac) if k < n else (k + frac - 2 * n)
+    # mirroring about index (n-1)/2 maps x -> -x, so the shift in pixels is 2c / p
+    return float(-shift * pixel_size_m / 2)
+
+
 def to_refractive_index(fbp_phase, fbp_attenuation, wavelength: float):
     """(delta, beta) from FBPs of phase and attenuation (per metre): -lambda/2pi, +lambda/2pi."""
     k = wavelength / (2 * np.pi)

@@ -195,7 +195,8 @@ def _tomo_task(item, *, recon_path, center_m, device, fft_workers):
 
 
 def rotation_center(recon_path) -> float:
-    """Estimate the rotation axis from the -phase sinograms of the middle row block of position 0."""
+    """Rotation axis from the -phase sinograms of the middle row block of position 0: from a
+    180-degree pair when the scan has one, else from the centre-of-mass sinusoid."""
     import zarr
 
     g = zarr.open_group(str(recon_path), mode="r", use_consolidated=False)
@@ -203,7 +204,9 @@ def rotation_center(recon_path) -> float:
     rb = g["phase"].chunks[2]
     mid = (ny // 2) // rb * rb
     sino = -g["phase"][0, :, mid : mid + rb, :]
-    return tomography.estimate_rotation_center(sino, g["angle"][...], float(g.attrs["pixel_size_m"]))
+    angles, pix = g["angle"][...], float(g.attrs["pixel_size_m"])
+    c = tomography.rotation_center_from_opposite(sino, angles, pix)
+    return c if c is not None else tomography.estimate_rotation_center(sino, angles, pix)
 
 
 def tomo_scan(

@@ -57,6 +57,17 @@ def test_rotation_centre_estimate_and_use(shepp, offset_px):
     assert np.abs(moved - base)[30:-30, 30:-30].max() < 0.02 * np.abs(base).max()
 
 
+@pytest.mark.parametrize("offset_px", [0.0, 3.0, -2.4, 1.3])
+def test_rotation_centre_from_opposite_projections(shepp, offset_px):
+    img, _, _ = shepp
+    theta = np.linspace(0, 180, 121)
+    sino = np.pad(radon(img, theta=theta, circle=True), ((12, 12), (0, 0)))
+    shifted = shift(sino, (offset_px, 0), order=3)
+    c = tomography.rotation_center_from_opposite(shifted.T[:, None, :], theta, 1.0)
+    assert c == pytest.approx(offset_px, abs=0.02)
+    assert tomography.rotation_center_from_opposite(shifted.T[:60, None, :], theta[:60], 1.0) is None
+
+
 def test_delta_beta_signs():
     delta, beta = tomography.to_refractive_index(np.array([-2.0]), np.array([1.0]), 1e-10)
     assert delta[0] > 0 and beta[0] > 0

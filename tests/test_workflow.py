@@ -174,7 +174,7 @@ def bead_values(ds, p):
 
 def test_rotation_axis_found(demo_recon):
     true = demo_recon.attrs["simulation_rotation_axis_offset_m"]
-    assert abs(demo_recon.attrs["rotation_center_m"] - true) < 0.5 * demo_recon.attrs["pixel_size_m"]
+    assert abs(demo_recon.attrs["rotation_center_m"] - true) < 0.1 * demo_recon.attrs["pixel_size_m"]
 
 
 def test_glass_bead_delta_within_5_percent(demo_recon):
