@@ -149,8 +149,9 @@ def diffuser_transmission(
     amplitude = xp.sqrt(xp.clip(intensity, 0, None)).astype(xp.complex128)
     t = optics.angular_spectrum_propagate(amplitude, pixel_size_m, wavelength, -diffuser_detector_distance_m, fft)
     if phase_screen_iter:
-        t = refine_phase_screen(t, amplitude.real, pixel_size_m, wavelength, diffuser_detector_distance_m,
-                                phase_screen_iter, fft)
+        t = refine_phase_screen(
+            t, amplitude.real, pixel_size_m, wavelength, diffuser_detector_distance_m, phase_screen_iter, fft
+        )
     return t
 
 

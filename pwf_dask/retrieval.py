@@ -15,7 +15,7 @@ from . import background as bg
 from . import calibration, optics, solver
 from .backend import FFT, get_array_module, to_numpy
 
-METHODS = ("pwf",)
+METHODS = ("pwf", "umpa", "lcs", "gf")
 
 
 @dataclass
@@ -102,6 +102,7 @@ def retrieve_projection(
     step_search: bool = True,
     phase_scale: float | str = 1.0,
     fft_workers: int | None = None,
+    tracking_options: dict | None = None,
 ) -> RetrievalResult:
     """Retrieve phase and attenuation from one flat/dark-corrected speckle image (CONTRACT §4).
 
@@ -117,6 +118,18 @@ def retrieve_projection(
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
+    if method != "pwf":
+        return retrieve_tracking(
+            sample,
+            reference,
+            method=method,
+            energy_eV=energy_eV,
+            pixel_size_m=pixel_size_m,
+            diffuser_detector_distance_m=diffuser_detector_distance_m,
+            background_mask=background_mask,
+            zero_background=zero_background,
+            **(tracking_options or {}),
+        )
     xp = get_array_module(sample, reference)
     y = _check_image("sample", sample, xp)
     ref = _check_image("reference", reference, xp)
@@ -243,5 +256,68 @@ def retrieve_projection(
         coherence_length_x_m=float(coherence_length_x_m),
         coherence_length_y_m=float(coherence_length_y_m),
         parameters=params,
+        background=mask,
+    )
+
+
+def retrieve_tracking(
+    sample,
+    reference,
+    *,
+    method: str,
+    energy_eV: float,
+    pixel_size_m: float,
+    diffuser_detector_distance_m: float,
+    background_mask=None,
+    zero_background: bool = True,
+    **options,
+) -> RetrievalResult:
+    """The speckle-tracking baselines (``umpa``, ``lcs``, ``gf``) behind the same interface.
+
+    ``sample`` and ``reference`` are (y, x) or (K, y, x) stacks of K diffuser positions (LCS
+    needs K >= 3); the results are (y, x). ``options`` go to the method (e.g. ``window``,
+    ``max_shift`` for UMPA).
+    """
+    from . import tracking
+
+    xp = get_array_module(sample, reference)
+    s = xp.asarray(sample, dtype=xp.float64)
+    r = xp.asarray(reference, dtype=xp.float64)
+    if s.shape != r.shape or s.ndim not in (2, 3):
+        raise ValueError(f"sample {s.shape} and reference {r.shape} must be equal (y, x) or (K, y, x) stacks")
+    for name, a in (("sample", s), ("reference", r)):
+        if not bool(xp.all(xp.isfinite(a))):
+            raise ValueError(f"{name} has non-finite values (NaN or inf)")
+        if bool(xp.any(a < 0)):
+            raise ValueError(f"{name} has negative values: pass flat/dark-corrected intensities")
+    scale = float(xp.mean(r))
+    s, r = s / scale, r / scale
+    fresnel = optics.wavelength_m(energy_eV) * diffuser_detector_distance_m / pixel_size_m**2
+    fn = {"umpa": tracking.umpa, "lcs": tracking.lcs, "gf": tracking.geometric_flow}[method]
+    out = fn(s, r, fresnel=fresnel, **options)
+    phase = to_numpy(out.phase).astype(np.float64)
+    attenuation = to_numpy(out.attenuation).astype(np.float64)
+    mask = None
+    if zero_background:
+        mask = (
+            np.asarray(to_numpy(background_mask), bool)
+            if background_mask is not None
+            else bg.detect_background(phase, attenuation if method != "gf" else None)
+        )
+        phase = bg.zero_background(phase, mask)
+        if method != "gf":
+            attenuation = bg.zero_background(attenuation, mask)
+    res = to_numpy(out.residual) * 100.0
+    return RetrievalResult(
+        phase=xp.asarray(phase.astype(np.float32)),
+        attenuation=xp.asarray(attenuation.astype(np.float32)),
+        iterations=0,
+        converged=True,
+        residual=xp.asarray(res.astype(np.float32)),
+        residual_rmse=float(np.sqrt(np.mean(res**2))),
+        loss_history=[],
+        coherence_length_x_m=float("nan"),
+        coherence_length_y_m=float("nan"),
+        parameters={"method": method, **options},
         background=mask,
     )

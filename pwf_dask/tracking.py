@@ -1,0 +1,212 @@
+"""Speckle-tracking baselines: UMPA, LCS and GF, beside PWF (Table S1 of the paper).
+
+All three return phase (Im psi, rad, negative for matter) and attenuation (-Re psi), like PWF,
+so the tomography and FSC stages take them unchanged. Geometry: the sample sits L1 upstream
+of the diffuser, so a phase gradient tilts the beam onto the diffuser and, by the memory
+effect, displaces the speckle by d = lambda L2 grad(phi) / (2 pi) at the detector (L1 only
+moves the illuminated patch of the diffuser). In pixels, d = F grad_px(phi) / (2 pi) with
+F = lambda L2 / p^2.
+
+* :func:`umpa` - Zdora et al. 2017: for every pixel, the integer shift minimising a windowed
+  least-squares cost between sample and shifted reference (transmission in closed form),
+  refined to sub-pixel by a parabola; K >= 1 images.
+* :func:`lcs` - Quenot et al. 2021, "low coherence system": per-pixel linear least squares
+  over K >= 3 diffuser positions of I_k = T (R_k - d . grad R_k).
+* :func:`geometric_flow` - Paganin et al. 2018: one image, no attenuation; the linearised flow
+  I_S = I_R - (lambda L2 / 2 pi) div(I_R grad phi), solved by conjugate gradients with an
+  inverse-Laplacian preconditioner.
+* :func:`integrate_gradient` - Frankot-Chellappa Fourier integration of the displacement field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .backend import FFT, get_array_module
+
+
+@dataclass
+class TrackingResult:
+    """Output of a speckle-tracking baseline (displacements in pixels; residual: RMS over the
+    K images of measured minus modelled intensity, the paper's LCS residual image)."""
+
+    phase: Any
+    attenuation: Any
+    dx: Any
+    dy: Any
+    residual: Any
+
+
+def _box(a, size: int, xp):
+    """Box sum over size x size windows (edges reflected), via cumulative sums."""
+    r = size // 2
+    p = xp.pad(a, ((r + 1, r), (r + 1, r)), mode="reflect")
+    c = xp.cumsum(xp.cumsum(p, axis=-2), axis=-1)
+    return c[size:, size:] - c[:-size, size:] - c[size:, :-size] + c[:-size, :-size]
+
+
+def integrate_gradient(gx, gy, fft: FFT | None = None):
+    """Frankot-Chellappa: the periodic surface whose gradient (per pixel) best fits (gx, gy).
+
+    Mirror-extended to 2x size so the periodic solution does not see the frame edges."""
+    xp = get_array_module(gx)
+    fft = fft or FFT.for_module(xp)
+    ny, nx = gx.shape
+    ex = xp.concatenate([gx, -gx[:, ::-1]], axis=1)
+    ex = xp.concatenate([ex, ex[::-1, :]], axis=0)
+    ey = xp.concatenate([gy, gy[:, ::-1]], axis=1)
+    ey = xp.concatenate([ey, -ey[::-1, :]], axis=0)
+    v = xp.asarray(np.fft.fftfreq(2 * ny)[:, None])
+    u = xp.asarray(np.fft.fftfreq(2 * nx)[None, :])
+    q2 = u * u + v * v
+    q2[0, 0] = 1.0
+    spec = (-1j * (u * fft.fft2(ex) + v * fft.fft2(ey))) / (2 * np.pi * q2)
+    spec[0, 0] = 0
+    return fft.ifft2(spec).real[:ny, :nx]
+
+
+def _phase_from_displacement(dx, dy, fresnel: float):
+    # d = F grad(phi) / (2 pi)  =>  grad(phi) = 2 pi d / F
+    return integrate_gradient(2 * np.pi * dx / fresnel, 2 * np.pi * dy / fresnel)
+
+
+def umpa(sample, reference, *, fresnel: float, window: int = 7, max_shift: int = 4):
+    """UMPA (Zdora 2017). ``sample``, ``reference``: (K, y, x) or (y, x). Returns a
+    :class:`TrackingResult`; displacements in pixels.
+
+    For shift s, cost(s) = sum_k sum_window (I_k - T R_k(r - s))^2 with the window's best T =
+    <I R_s> / <R_s R_s>, i.e. cost = <I I> - <I R_s>^2 / <R_s R_s> (box sums over the window).
+    """
+    xp = get_array_module(sample, reference)
+    i_img = xp.asarray(sample, dtype=xp.float64)
+    r_img = xp.asarray(reference, dtype=xp.float64)
+    if i_img.ndim == 2:
+        i_img, r_img = i_img[None], r_img[None]
+    ii = sum(_box(i_img[k] ** 2, window, xp) for k in range(i_img.shape[0]))
+    shifts = range(-max_shift, max_shift + 1)
+    n = len(shifts)
+    cost = xp.empty((n, n) + i_img.shape[1:])
+    trans = xp.empty_like(cost)
+    for a, sy in enumerate(shifts):
+        for b, sx in enumerate(shifts):
+            rs = xp.roll(r_img, (sy, sx), axis=(1, 2))  # R(r - s)
+            ir = sum(_box(i_img[k] * rs[k], window, xp) for k in range(i_img.shape[0]))
+            rr = sum(_box(rs[k] ** 2, window, xp) for k in range(i_img.shape[0]))
+            cost[a, b] = ii - ir * ir / rr
+            trans[a, b] = ir / rr
+    flat = cost.reshape(n * n, *cost.shape[2:])
+    best = xp.argmin(flat, axis=0)
+    by, bx = best // n, best % n
+    byc = xp.clip(by, 1, n - 2)
+    bxc = xp.clip(bx, 1, n - 2)
+    yy, xx = xp.indices(by.shape)
+
+    def parabola(c0, c1, c2):
+        den = c0 - 2 * c1 + c2
+        return xp.where(den > 0, 0.5 * (c0 - c2) / xp.where(den > 0, den, 1), 0.0)
+
+    fy = parabola(cost[byc - 1, bx, yy, xx], cost[byc, bx, yy, xx], cost[byc + 1, bx, yy, xx])
+    fx = parabola(cost[by, bxc - 1, yy, xx], cost[by, bxc, yy, xx], cost[by, bxc + 1, yy, xx])
+    dy = (byc - max_shift) + xp.clip(fy, -1, 1)
+    dx = (bxc - max_shift) + xp.clip(fx, -1, 1)
+    t = trans[by, bx, yy, xx]
+    phase = _phase_from_displacement(dx, dy, fresnel)
+    attenuation = -0.5 * xp.log(xp.clip(t, 1e-6, None))
+    k = i_img.shape[0]
+    residual = xp.sqrt(xp.clip(cost[by, bx, yy, xx], 0, None) / (k * window * window))
+    return TrackingResult(phase, attenuation, dx, dy, residual)
+
+
+def lcs(sample, reference, *, fresnel: float, regularization: float = 1e-6):
+    """LCS (Quenot 2021): per pixel, least squares over K >= 3 positions of
+    I_k = a R_k + b dR_k/dx + c dR_k/dy, with a = T, (b, c) = -T d. Returns a
+    :class:`TrackingResult`."""
+    xp = get_array_module(sample, reference)
+    i_img = xp.asarray(sample, dtype=xp.float64)
+    r_img = xp.asarray(reference, dtype=xp.float64)
+    if i_img.ndim != 3 or i_img.shape[0] < 3:
+        raise ValueError("LCS needs K >= 3 diffuser positions: sample and reference of shape (K, y, x)")
+    gy, gx = xp.gradient(r_img, axis=(1, 2))
+    basis = xp.stack([r_img, gx, gy], axis=1)  # (K, 3, y, x)
+    ata = xp.einsum("kiyx,kjyx->yxij", basis, basis)
+    atb = xp.einsum("kiyx,kyx->yxi", basis, i_img)
+    scale = xp.trace(ata, axis1=-2, axis2=-1)[..., None, None] / 3
+    ata = ata + regularization * scale * xp.eye(3)
+    sol = xp.linalg.solve(ata, atb[..., None])[..., 0]
+    t = sol[..., 0]
+    tsafe = xp.where(xp.abs(t) > 1e-6, t, 1e-6)
+    dx = -sol[..., 1] / tsafe
+    dy = -sol[..., 2] / tsafe
+    phase = _phase_from_displacement(dx, dy, fresnel)
+    attenuation = -0.5 * xp.log(xp.clip(t, 1e-6, None))
+    model = xp.einsum("kiyx,yxi->kyx", basis, sol)
+    residual = xp.sqrt(xp.mean((i_img - model) ** 2, axis=0))
+    return TrackingResult(phase, attenuation, dx, dy, residual)
+
+
+def geometric_flow(sample, reference, *, fresnel: float, iterations: int = 200, tol: float = 1e-6):
+    """Geometric flow (Paganin 2018): phase from one image, assuming no attenuation.
+
+    Solves div(I_R grad phi) = (2 pi / F) (I_R - I_S) (pixels) by conjugate gradients on the
+    negated, symmetric positive operator, preconditioned by the inverse Laplacian scaled by
+    mean(I_R). Returns a :class:`TrackingResult` with the phase (mean 0) and zero attenuation,
+    which is GF's assumption."""
+    xp = get_array_module(sample, reference)
+    fft = FFT.for_module(xp)
+    i_s = xp.asarray(sample, dtype=xp.float64)
+    i_r = xp.asarray(reference, dtype=xp.float64)
+    if i_s.ndim == 3:
+        i_s, i_r = i_s[0], i_r[0]
+    # -div(I_R grad phi) = -(2 pi / F)(I_R - I_S): the operator below is -div(I_R grad .)
+    b = -(2 * np.pi / fresnel) * (i_r - i_s)
+    b = b - b.mean()
+
+    def grad(f):
+        return xp.roll(f, -1, 1) - f, xp.roll(f, -1, 0) - f
+
+    def div(gx, gy):
+        return gx - xp.roll(gx, 1, 1) + gy - xp.roll(gy, 1, 0)
+
+    ax = 0.5 * (i_r + xp.roll(i_r, -1, 1))
+    ay = 0.5 * (i_r + xp.roll(i_r, -1, 0))
+
+    def op(f):  # -div(I_R grad f): symmetric positive semi-definite
+        gx, gy = grad(f)
+        return -div(ax * gx, ay * gy)
+
+    ny, nx = i_s.shape
+    v = xp.asarray(np.fft.fftfreq(ny)[:, None])
+    u = xp.asarray(np.fft.fftfreq(nx)[None, :])
+    lap = (2 - 2 * xp.cos(2 * np.pi * u)) + (2 - 2 * xp.cos(2 * np.pi * v))
+    lap[0, 0] = 1.0
+    mean_r = float(i_r.mean())
+
+    def precond(r):
+        s = fft.fft2(r) / (lap * mean_r)
+        s[0, 0] = 0
+        return fft.ifft2(s).real
+
+    x = xp.zeros_like(b)
+    r = b - op(x)
+    z = precond(r)
+    p = z.copy()
+    rz = float(xp.vdot(r, z))
+    bnorm = float(xp.linalg.norm(b)) or 1.0
+    for _ in range(iterations):
+        ap = op(p)
+        alpha = rz / float(xp.vdot(p, ap))
+        x = x + alpha * p
+        r = r - alpha * ap
+        if float(xp.linalg.norm(r)) < tol * bnorm:
+            break
+        z = precond(r)
+        rz_new = float(xp.vdot(r, z))
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    residual = xp.abs(i_s - (i_r - (fresnel / (2 * np.pi)) * op(-x)))
+    gx, gy = grad(x)
+    d = fresnel / (2 * np.pi)
+    return TrackingResult(x - x.mean(), xp.zeros_like(x), d * gx, d * gy, residual)
