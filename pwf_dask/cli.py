@@ -185,7 +185,7 @@ def _compute_options(p: argparse.ArgumentParser) -> None:
 def _retrieval_options(p: argparse.ArgumentParser) -> None:
     from .solver import PAPER_TOL
 
-    p.add_argument("--method", default="pwf", choices=["pwf"])
+    p.add_argument("--method", default="pwf", choices=["pwf", "lcs", "umpa", "gf"])
     p.add_argument("--max-iter", type=int, default=2000)
     p.add_argument("--tol", type=float, default=PAPER_TOL, help="1 - field correlation of successive iterates")
     p.add_argument("--gamma", type=float, default=1.0)

@@ -23,6 +23,9 @@ from .optics import wavelength_m
 from .retrieval import METHODS
 from .solver import PAPER_TOL
 
+#: methods that combine the K diffuser positions of one angle into one projection
+MULTI_IMAGE = ("lcs", "umpa")
+
 
 def _read_corrected(g, name, index, flat, dark, corrected):
     return scan_io.correct(g[name][index], flat, dark, corrected)
@@ -47,8 +50,13 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
     p, a = item
     t0 = time.perf_counter()
     g, flat, dark, corrected = _scan_frames(scan_path)
-    sample = _read_corrected(g, "projections", (p, a), flat, dark, corrected)
-    reference = _read_corrected(g, "reference", p, flat, dark, corrected)
+    if options.get("method") in MULTI_IMAGE:  # all K positions at this angle, one result
+        npos = g["projections"].shape[0]
+        sample = np.stack([_read_corrected(g, "projections", (k, a), flat, dark, corrected) for k in range(npos)])
+        reference = np.stack([_read_corrected(g, "reference", k, flat, dark, corrected) for k in range(npos)])
+    else:
+        sample = _read_corrected(g, "projections", (p, a), flat, dark, corrected)
+        reference = _read_corrected(g, "reference", p, flat, dark, corrected)
     xp = resolve_device(device)
     res = retrieve_projection(
         xp.asarray(sample),
@@ -102,9 +110,11 @@ def retrieve_scan(
     resolve_device(device)  # fail early on --device gpu without CuPy
     alpha_c = complex(str(alpha).replace(" ", "")) if not isinstance(alpha, complex) else alpha
     ds, info = scan_io.open_scan(scan_path)
+    if method == "lcs" and info.n_positions < 3:
+        raise ValueError(f"method lcs needs K >= 3 diffuser positions; the scan has {info.n_positions}")
     g, flat, dark, corrected = _scan_frames(scan_path)
     coherence = []
-    for p in range(info.n_positions):
+    for p in range(info.n_positions if method == "pwf" else 0):
         cx, cy = info.coherence_length_x_m, info.coherence_length_y_m
         if cx is None or cy is None:
             ref = _read_corrected(g, "reference", p, flat, dark, corrected)
@@ -112,6 +122,12 @@ def retrieve_scan(
             cx = fx if cx is None else cx
             cy = fy if cy is None else cy
         coherence.append((float(cx), float(cy)))
+    if method != "pwf":
+        coherence = [(float("nan"), float("nan"))] * info.n_positions
+    if method in MULTI_IMAGE:
+        from dataclasses import replace
+
+        info = replace(info, n_positions=1)  # one reconstruction from all K positions
     params = {
         "method": method,
         "gamma": float(gamma),
@@ -121,9 +137,10 @@ def retrieve_scan(
         "max_iter": int(max_iter),
         "precision": precision,
         "device": device,
-        "coherence_length_x_m": float(np.mean([c[0] for c in coherence])),
-        "coherence_length_y_m": float(np.mean([c[1] for c in coherence])),
-        "coherence_lengths_per_position_m": json.dumps(coherence),
+        # "n/a": the speckle-tracking baselines use no coherence model
+        "coherence_length_x_m": float(np.mean([c[0] for c in coherence])) if method == "pwf" else "n/a",
+        "coherence_length_y_m": float(np.mean([c[1] for c in coherence])) if method == "pwf" else "n/a",
+        "coherence_lengths_per_position_m": json.dumps(coherence) if method == "pwf" else "n/a",
         "coherence_calibrated": info.coherence_length_x_m is None or info.coherence_length_y_m is None,
         "pwf_dask_version": __version__,
         **{k: v for k, v in options.items() if isinstance(v, (int, float, str, bool))},
