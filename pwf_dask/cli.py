@@ -166,6 +166,12 @@ def _bench(args) -> int:
         run_iteration_benchmark(args.out, device=args.device, quick=args.quick)
         print(f"results written to {args.out}")
         return 0
+    if args.what == "accuracy":
+        from .bench import run_accuracy_benchmark
+
+        run_accuracy_benchmark(args.out)
+        print(f"results written to {args.out}")
+        return 0
     if args.what == "scan":
         from .bench import run_scan_benchmark
 
@@ -246,8 +252,8 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="benchmarks; results to workflows/results/")
     b.add_argument(
         "what",
-        choices=["iteration", "scan"],
-        help="iteration: PWF iteration time / FFT time per size; scan: throughput per worker",
+        choices=["iteration", "scan", "accuracy"],
+        help="iteration: PWF iteration / FFT time; scan: throughput per worker; accuracy: speed vs error",
     )
     b.add_argument("--device", default="cpu", choices=["cpu", "gpu", "auto"])
     b.add_argument("--out", default="workflows/results")

@@ -79,3 +79,10 @@ def test_retrieve_projection_dispatches_baselines(scenes):
     assert 0.9 < gain(res.phase, truth) < 1.1
     with pytest.raises(ValueError, match="must be equal"):
         retrieve_projection(s, r[:2], method="umpa", **kw)
+
+
+def test_pareto_front_of_time_and_error():
+    from pwf_dask.bench import _pareto
+
+    pts = [(1.0, 0.5), (2.0, 0.2), (3.0, 0.3), (0.5, 0.9), (2.0, 0.2)]
+    assert _pareto(pts) == {0, 1, 3, 4}
