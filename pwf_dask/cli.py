@@ -94,6 +94,18 @@ def _simulate(args) -> int:
     return 0
 
 
+def _retrieval_kwargs(args) -> dict:
+    """The retrieval options shared by ``retrieve`` and ``run``."""
+    return dict(
+        method=args.method,
+        max_iter=args.max_iter,
+        tol=args.tol,
+        gamma=args.gamma,
+        alpha=args.alpha,
+        phase_scale=args.phase_scale,
+    )
+
+
 def _retrieve(args) -> int:
     from .workflow import retrieve_scan
 
@@ -102,12 +114,7 @@ def _retrieve(args) -> int:
         args.recon,
         scheduler=args.scheduler,
         device=args.device,
-        method=args.method,
-        max_iter=args.max_iter,
-        tol=args.tol,
-        gamma=args.gamma,
-        alpha=args.alpha,
-        phase_scale=args.phase_scale,
+        **_retrieval_kwargs(args),
     )
     print(f"retrieved {r['computed']} projections in {r['wall_s']:.1f} s into {args.recon}")
     return 0
@@ -144,12 +151,7 @@ def _run(args) -> int:
         device=args.device,
         split=args.split,
         center_m=center,
-        method=args.method,
-        max_iter=args.max_iter,
-        tol=args.tol,
-        gamma=args.gamma,
-        alpha=args.alpha,
-        phase_scale=args.phase_scale,
+        **_retrieval_kwargs(args),
     )
     f = r["fsc"]
     print(
