@@ -99,6 +99,17 @@ def device_name(xp) -> str:
     return name.decode() if isinstance(name, bytes) else str(name)
 
 
+def write_rows_csv(out_dir: str | Path, name: str, rows: list[dict]) -> Path:
+    """Rows (dicts with the same keys) as ``out_dir/name``, creating the folder."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / name, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return out
+
+
 def run_iteration_benchmark(out_dir: str | Path, device: str = "cpu", sizes=None, quick: bool = False) -> list[dict]:
     """All rows for ``pwf-dask bench iteration``; writes ``bench_iteration_<dev>.csv|md|png``."""
     xp = resolve_device(device)
@@ -119,13 +130,8 @@ def run_iteration_benchmark(out_dir: str | Path, device: str = "cpu", sizes=None
                 f"FFT {row['fft_ms']:8.3f} ms   ratio {row['ratio']:6.1f}",
                 flush=True,
             )
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     tag = "gpu" if xp is not np else "cpu"
-    with open(out / f"bench_iteration_{tag}.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    out = write_rows_csv(out_dir, f"bench_iteration_{tag}.csv", rows)
     lines = [
         f"# PWF iteration time / complex64 FFT time ({rows[0]['device']})",
         "",
@@ -204,12 +210,7 @@ def run_scan_benchmark(
     model = []
     for n in (1, 2, 8, 32, 128):
         model.append({"workers": n, "hours": 801 * t_proj / (n * (eff if n > 1 else 1.0)) / 3600})
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "bench_scan_cpu.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    out = write_rows_csv(out_dir, "bench_scan_cpu.csv", rows)
     lines = [
         f"# Scan retrieval throughput ({full['device']})",
         "",
@@ -270,10 +271,10 @@ def _tomogram_errors(recon_path) -> dict:
 
 ACCURACY_RUNS = [
     # (label, method, K, options)
-    ("PWF 100 it", "pwf", 1, dict(max_iter=100, phase_scale=4.0)),
-    ("PWF 300 it", "pwf", 1, dict(max_iter=300, phase_scale=4.0)),
-    ("PWF 300 it float64", "pwf", 1, dict(max_iter=300, phase_scale=4.0, precision="double")),
-    ("PWF 300 it kappa 1", "pwf", 1, dict(max_iter=300)),
+    ("PWF 100 it", "pwf", 1, dict(max_iter=100)),
+    ("PWF 300 it", "pwf", 1, dict(max_iter=300)),
+    ("PWF 300 it float64", "pwf", 1, dict(max_iter=300, precision="double")),
+    ("PWF 300 it kappa 4", "pwf", 1, dict(max_iter=300, phase_scale=4.0)),
     ("LCS K=3", "lcs", 3, {}),
     ("LCS K=6", "lcs", 6, {}),
     ("LCS K=12", "lcs", 12, {}),
@@ -333,12 +334,7 @@ def run_accuracy_benchmark(out_dir: str | Path, work_dir: str | Path | None = No
             f"  bead beta {row['bead_beta_err']:+.3f}  FSC(truth) {row['fsc_truth_delta_um']:.2f} um",
             flush=True,
         )
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "speed_accuracy.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    out = write_rows_csv(out_dir, "speed_accuracy.csv", rows)
     pareto = _pareto([(r["wall_s"], r["delta_rmse_rel"]) for r in rows])
     lines = [
         f"# Speed and accuracy of PWF and the speckle-tracking baselines ({device_name(np)})",

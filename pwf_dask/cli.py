@@ -180,6 +180,12 @@ def _bench(args) -> int:
         run_scan_benchmark(args.out)
         print(f"results written to {args.out}")
         return 0
+    if args.what == "stability":
+        from .stability import run_stability_benchmark
+
+        run_stability_benchmark(args.out, quick=args.quick)
+        print(f"results written to {args.out}")
+        return 0
     raise SystemExit(f"pwf-dask bench: unknown benchmark {args.what!r}")
 
 
@@ -247,19 +253,20 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="simulate a small scan, reconstruct it, write figures")
     d.add_argument("dir", nargs="?", default="pwf-dask-demo", help="output folder (default ./pwf-dask-demo)")
     d.add_argument("--max-iter", type=int, default=300)
-    d.add_argument("--phase-scale", type=float, default=4.0)
+    d.add_argument("--phase-scale", type=float, default=1.0)
     d.add_argument("--seed", type=int, default=0)
     _compute_options(d)
     d.set_defaults(func=_scan_demo)
     b = sub.add_parser("bench", help="benchmarks; results to workflows/results/")
     b.add_argument(
         "what",
-        choices=["iteration", "scan", "accuracy"],
-        help="iteration: PWF iteration / FFT time; scan: throughput per worker; accuracy: speed vs error",
+        choices=["iteration", "scan", "accuracy", "stability"],
+        help="iteration: PWF iteration / FFT time; scan: throughput per worker; accuracy: speed vs error; "
+        "stability: where each method fails",
     )
     b.add_argument("--device", default="cpu", choices=["cpu", "gpu", "auto"])
     b.add_argument("--out", default="workflows/results")
-    b.add_argument("--quick", action="store_true", help="one small size (smoke test)")
+    b.add_argument("--quick", action="store_true", help="one small size or scene (smoke test)")
     b.set_defaults(func=_bench)
     return p
 

@@ -3,7 +3,8 @@
 ``threads`` (default: the local threaded scheduler, nothing to start), ``processes``,
 ``local`` (a distributed LocalCluster, dashboard on localhost), ``local-cuda`` (dask-cuda's
 LocalCUDACluster, one worker per GPU, tasks ask for ``resources={"GPU": 1}``) or a scheduler
-address ``tcp://HOST:PORT`` of a running cluster (dask-jobqueue, Kubernetes, ...).
+address ``tcp://HOST:PORT`` of a running cluster (dask-jobqueue, Kubernetes, ...; when its
+workers advertise a ``GPU`` resource, every task asks for one).
 
 Tasks go through :meth:`Runner.map`, which shows progress and returns results in order. On
 distributed, tasks are submitted one by one with ``client.submit`` so that resource
@@ -67,6 +68,9 @@ class Runner:
 
             self.client = Client(s)
             self._owned.append(self.client)
+            # workers started with --resources GPU=1 (dask-jobqueue, Kubernetes): ask for one
+            workers = self.client.scheduler_info().get("workers", {})
+            self.gpu = bool(workers) and all("GPU" in w.get("resources", {}) for w in workers.values())
 
     def __enter__(self) -> Runner:
         return self

@@ -18,9 +18,9 @@ psi <- psi - eta M grad J, with the metric M = diag(1 on Re psi, P^-1 on Im psi)
 
 because P^-1 (u^2+v^2) = 1 away from DC. (Without the preconditioner the last weight is
 Gamma^2 alone.) J is a real objective, so its value at every iterate can decide two things
-the paper leaves to hand tuning: an adaptive momentum restart when J rises after a
-Nesterov step (O'Donoghue & Candes 2015), and a halved step when J rises after a plain
-gradient step (backtracking). Gradient steps are then monotone in J; the paper's
+the paper leaves to hand tuning: an adaptive momentum restart (O'Donoghue & Candes 2015;
+see :func:`pwf`), and a halved step when J rises after a plain gradient step
+(backtracking). Gradient steps are then monotone in J; the paper's
 normalisation 1/max|t|^2 with eta = 1 can no longer run to NaN.
 
 N_t = max_r |t_r|^2 (``normalization="paper"``, Algorithm S2 as printed, the default) or
@@ -484,6 +484,7 @@ def pwf(
     window: int = 20,
     psi0=None,
     step_search: bool = True,
+    restart: str = "gradient",
     callback=None,
 ) -> PWFSolution:
     """Algorithm S1 with a safe step and a robust stop.
@@ -501,10 +502,20 @@ def pwf(
     below ``rtol`` times rms(psi) (``rtol`` = 0 disables this test).
 
     Step: ``step`` is eta of Algorithm S1; with ``step_search`` it is first doubled along the
-    first direction while J falls (:func:`initial_step`). J rising after a momentum step
-    restarts the momentum, J rising after a plain step halves eta, and the rejected point is
-    discarded.
+    first direction while J falls (:func:`initial_step`). J rising after a plain step halves
+    eta and the rejected point is discarded.
+
+    Momentum restart (``restart``): ``"gradient"`` (default, O'Donoghue & Candes 2015) drops
+    the momentum when it points uphill, Re<d, phi_k - phi_{k-1}> > 0, and tolerates J at the
+    extrapolated point oscillating inside a momentum run as long as it stays below J at the
+    run's start (above it: discard and restart). ``"function"`` discards and restarts on any
+    rise of J. J is evaluated at the extrapolated point, where it oscillates while the
+    iterates still converge, so the function rule restarts every few iterations and loses
+    the acceleration: on a 256 x 256 frame with coherence lengths 15 % short it reached 52 %
+    of the phase error after 500 iterations (relative error 0.48), the gradient rule 0.10.
     """
+    if restart not in ("gradient", "function"):
+        raise ValueError(f"restart must be 'gradient' or 'function', got {restart!r}")
     xp = model.xp
     psi = xp.zeros(model.shape, dtype=model.cdtype) if psi0 is None else xp.asarray(psi0, dtype=model.cdtype)
     eta = float(step)
@@ -516,6 +527,8 @@ def pwf(
     momentum_used = False
     history: list[float] = []
     restarts = backtracks = streak = 0
+    anchor_j = math.inf
+    run = short = 0  # iterations since the last gradient restart; short runs in a row
     # J is summed in float64 from residuals rounded to the working precision: a rise
     # smaller than that rounding is noise, not a failed step
     rise_tol = 1e-5 if model.rdtype == np.float32 else 1e-11
@@ -532,9 +545,22 @@ def pwf(
             if last is None:
                 raise FloatingPointError("PWF objective is not finite at the first iterate")
             j = math.inf
-        if last is not None and j > last[1] * (1.0 + rise_tol):
+        # function restart: J above the last accepted value; gradient restart tolerates J(y)
+        # oscillating inside a momentum run as long as it stays below the run's start
+        rose = False
+        if last is not None:
+            ref_j = anchor_j if (restart == "gradient" and momentum_used) else last[1]
+            rose = j > ref_j * (1.0 + rise_tol)
+        if rose:
             if momentum_used:
                 restarts += 1
+                if restart == "gradient":
+                    short = short + 1 if run <= 3 else 0
+                    run = 0
+                    if short >= 3:  # see below: eta too long for the stiffest mode
+                        eta *= 0.5
+                        backtracks += 1
+                        short = 0
             else:
                 backtracks += 1
                 eta *= 0.5
@@ -557,6 +583,8 @@ def pwf(
                 last_x_norm = float(xp.linalg.norm(ev.x))
             if last is None and step_search:
                 eta = initial_step(psi, d, j, y, model, eta)
+            if not momentum_used:
+                anchor_j = j
             last = (psi, j, d, ev)
             history.append(j)
             if callback is not None:
@@ -569,6 +597,19 @@ def pwf(
         mu_prev = mu
         mu = 0.5 * (1.0 + math.sqrt(1.0 + 4.0 * mu * mu))
         beta = (mu_prev - 1.0) / mu
+        run += 1
+        if restart == "gradient" and beta > 0 and float(xp.vdot(d, phi - phi_prev).real) > 0:
+            # the momentum points uphill along the (preconditioned) gradient at psi
+            restarts += 1
+            mu, beta = 1.0, 0.0
+            # momentum runs of 1-2 steps, again and again: the stiffest mode oscillates,
+            # so eta is too long for it (the doubling search can overshoot it)
+            short = short + 1 if run <= 3 else 0
+            run = 0
+            if short >= 3:
+                eta *= 0.5
+                backtracks += 1
+                short = 0
         momentum_used = beta > 0
         psi = phi + beta * (phi - phi_prev) if momentum_used else phi
         phi_prev = phi

@@ -162,7 +162,7 @@ def demo_recon(tmp_path_factory):
     simulate_scan(scan, preset="demo", seed=0, rotation_axis_offset_px=2.5, progress=False)
     # the demo's settings: kappa = 4 reaches the converged solution within 300 iterations on
     # this small frame (with kappa = 1 the cylinder stops at 40-60 %, README)
-    workflow.run_scan(scan, recon, max_iter=300, phase_scale=4.0)
+    workflow.run_scan(scan, recon, max_iter=300)
     return xr.open_zarr(recon)
 
 

@@ -1,0 +1,420 @@
+"""Where each method fails: the stability map (issue 4), one projection against known truth.
+
+One base scene (the paper's optics: 10 keV, 0.65 um pixels, L1 = 3 mm, L2 = 20 mm, coherence
+lengths 3.47 / 4.31 um, sub-pixel SiC sandpaper, 1e4 photons per pixel, the cellulose rod with
+glass beads) is varied along one axis at a time:
+
+- ``dose``: photons per pixel, 1e2 - 1e6 (Poisson noise);
+- ``max_phase_pi``: sample thickness along the beam, the projected delta and beta scaled so the
+  largest phase shift is 1 - 100 pi (a thicker or denser sample of the same shape);
+- ``absorption``: the projected beta scaled by 0 - 10 at the base's phase (0: a pure phase
+  object, where single-image geometric flow is meant to hold);
+- ``gradient``: the phantom shrunk laterally by 1, 1/2, 1/4, 1/8 at the base's largest phase, so
+  the phase gradient, i.e. the speckle displacement relative to the grain size, grows 1 - 8 x;
+- ``l2_mm``: diffuser-detector distance 5 - 80 mm, which sets the speckle grain and the
+  displacement; the source blur (the coherence PSF) grows in proportion to L2;
+- ``coherence_error``: PWF given coherence lengths 30 % short to 30 % long (the baselines do not
+  use them);
+- ``ablation``: PWF without the preconditioner, without the regularization window (gamma = 0),
+  and without the regularizer (alpha = 0).
+
+Every point reports the measured physical coordinates (largest phase in pi, 99th-percentile
+speckle displacement over the grain size) beside the axis value, and for every method the phase
+and attenuation errors: RMSE inside the sample relative to the RMS true value, after the
+sample-free background (taken from the truth for every method alike, so the map measures the
+retrieval, not background detection) is zeroed. A method *holds* at a point while its phase
+error is below ``PHASE_ERROR_THRESHOLD``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from . import optics
+from .retrieval import retrieve_projection
+from .simulation import Phantom, SpeckleSetup, SpeckleSimulator, Sphere, default_phantom
+
+PHASE_ERROR_THRESHOLD = 0.25
+
+AXES: dict[str, list] = {
+    "dose": [1e2, 1e3, 1e4, 1e5, 1e6],
+    "max_phase_pi": [1.0, 3.0, 10.0, 30.0, 100.0],
+    "absorption": [0.0, 0.1, 1.0, 10.0],
+    "gradient": [1.0, 2.0, 4.0, 8.0],
+    "l2_mm": [5.0, 10.0, 20.0, 40.0, 80.0],
+    "coherence_error": [-0.3, -0.15, 0.0, 0.15, 0.3],
+    "ablation": ["none", "no preconditioner", "gamma = 0", "alpha = 0"],
+}
+PWF_ONLY_AXES = ("coherence_error", "ablation")
+
+# (label, method, K diffuser positions, options)
+METHOD_RUNS: list[tuple[str, str, int, dict]] = [
+    ("PWF K=1", "pwf", 1, dict(max_iter=500)),
+    ("LCS K=12", "lcs", 12, {}),
+    ("UMPA K=12 w5", "umpa", 12, dict(tracking_options={"window": 5})),
+    ("UMPA K=1 w7", "umpa", 1, {}),
+    ("GF K=1", "gf", 1, {}),
+]
+
+
+def scaled_phantom(phantom: Phantom, lateral_scale: float) -> Phantom:
+    """The phantom with every length (radii, positions) multiplied by ``lateral_scale``."""
+    s = lateral_scale
+    return replace(
+        phantom,
+        cylinder_radius_m=phantom.cylinder_radius_m * s,
+        cylinder_u_m=phantom.cylinder_u_m * s,
+        cylinder_v_m=phantom.cylinder_v_m * s,
+        spheres=tuple(
+            Sphere(sp.u_m * s, sp.y_m * s, sp.v_m * s, sp.radius_m * s, sp.material) for sp in phantom.spheres
+        ),
+    )
+
+
+def speckle_grain_px(reference: np.ndarray) -> float:
+    """Mean full width at half maximum (pixels) of the reference speckle's autocorrelation along
+    x and y: the speckle grain size the displacement is compared with."""
+    r = reference / reference.mean() - 1.0
+    ac = np.fft.irfft2(np.abs(np.fft.rfft2(r)) ** 2, s=r.shape)
+    ac = ac / ac[0, 0]
+    widths = []
+    for prof in (ac[0, : r.shape[1] // 2], ac[: r.shape[0] // 2, 0]):
+        below = np.nonzero(prof < 0.5)[0]
+        i = int(below[0]) if below.size else len(prof) - 1
+        # linear interpolation of the half-maximum crossing between i - 1 and i
+        x = i - 1 + (prof[i - 1] - 0.5) / max(prof[i - 1] - prof[i], 1e-12)
+        widths.append(2.0 * x)
+    return float(np.mean(widths))
+
+
+def displacement_px(phase: np.ndarray, wavelength: float, l2_m: float, pixel_size_m: float) -> float:
+    """99th percentile of the speckle displacement lambda L2 |grad phi| / (2 pi p) in pixels
+    (CONTRACT §2), over the pixels where the phase changes."""
+    gy, gx = np.gradient(phase)
+    g = np.hypot(gx, gy)
+    moving = g > 1e-3 * g.max() if g.max() > 0 else np.ones_like(g, bool)
+    return float(np.percentile(g[moving], 99) * wavelength * l2_m / (2 * np.pi * pixel_size_m**2))
+
+
+class Scene:
+    """K diffuser positions of one sample at one set-up, noise-free until :meth:`images`."""
+
+    def __init__(
+        self,
+        setup: SpeckleSetup,
+        phantom: Phantom,
+        phase_factor: float,
+        positions: int,
+        seed: int = 0,
+        absorption_factor: float = 1.0,
+    ):
+        self.setup = setup
+        sim = SpeckleSimulator(setup, seed=seed)
+        self.sim = sim
+        _, psi = sim.sample_field(phantom)
+        psi = phase_factor * (absorption_factor * psi.real + 1j * psi.imag)
+        field_ = np.exp(psi)
+        self.phase = sim._bin(psi.imag)
+        self.attenuation = sim._bin(-psi.real)
+        shifts = [(7 * k, 13 * k) for k in range(positions)]
+        self.clean_samples = np.array([sim.intensity(field_, sim.diffuser(s)) for s in shifts])
+        self.clean_references = np.array([sim.intensity(None, sim.diffuser(s)) for s in shifts])
+        self.background = np.abs(self.phase) < 1e-6 * max(np.abs(self.phase).max(), 1e-30)
+
+    def images(self, photons: float, k: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """(sample, reference) stacks of the first ``k`` positions with Poisson noise at ``photons``."""
+        rng = np.random.default_rng(seed)
+
+        def noisy(a):
+            return (rng.poisson(np.clip(a, 0, None) * photons) / photons).astype(np.float32)
+
+        return noisy(self.clean_samples[:k]), noisy(self.clean_references[:k])
+
+
+def errors(phase, attenuation, truth_phase, truth_attenuation, background) -> dict:
+    """Relative RMSE of phase and attenuation inside the sample (|true phase| > 2 % of its max)."""
+    inside = np.abs(truth_phase) > 0.02 * np.abs(truth_phase).max()
+
+    def offset_free(est):
+        est = np.asarray(est, np.float64)
+        return est - np.mean(est[background]) if background.any() else est
+
+    def rel(est, true):
+        est = offset_free(est)
+        if not np.all(np.isfinite(est[inside])):
+            return float("inf")
+        norm = np.sqrt(np.mean(true[inside] ** 2))
+        if norm == 0:  # nothing to recover (a pure phase object's attenuation)
+            return float("nan")
+        return float(np.sqrt(np.mean((est - true)[inside] ** 2)) / norm)
+
+    out = {"phase_error": rel(phase, truth_phase)}
+    out["attenuation_error"] = rel(attenuation, truth_attenuation) if attenuation is not None else float("nan")
+    est = offset_free(phase)[inside]
+    ok = np.all(np.isfinite(est))
+    # regression through the origin: both sides are zero on the background
+    t = truth_phase[inside]
+    gain_fit = float(np.dot(est, t) / np.dot(t, t)) if ok else np.nan
+    out["phase_gain"] = gain_fit
+    return out
+
+
+def _point_setups(axis: str, value, base: SpeckleSetup):
+    """(setup, lateral_scale, max phase target or None, absorption factor, photons, PWF
+    overrides) for one point."""
+    setup, lateral, target, absorption, photons, pwf = base, 1.0, None, 1.0, base.photons, {}
+    if axis == "dose":
+        photons = float(value)
+    elif axis == "max_phase_pi":
+        target = float(value)
+    elif axis == "absorption":
+        absorption = float(value)
+    elif axis == "gradient":
+        lateral = 1.0 / float(value)
+    elif axis == "l2_mm":
+        f = float(value) * 1e-3 / base.diffuser_detector_distance_m
+        setup = replace(
+            base,
+            diffuser_detector_distance_m=float(value) * 1e-3,
+            coherence_length_x_m=base.coherence_length_x_m * f,
+            coherence_length_y_m=base.coherence_length_y_m * f,
+        )
+    elif axis == "coherence_error":
+        pwf = dict(
+            coherence_length_x_m=base.coherence_length_x_m * (1 + float(value)),
+            coherence_length_y_m=base.coherence_length_y_m * (1 + float(value)),
+        )
+    elif axis == "ablation":
+        pwf = {
+            "none": {},
+            "no preconditioner": dict(preconditioner=False),
+            "gamma = 0": dict(gamma=0.0),
+            "alpha = 0": dict(alpha=0.0),
+        }[value]
+    else:
+        raise ValueError(f"unknown stability axis {axis!r}: choose one of {', '.join(AXES)}")
+    return setup, lateral, target, absorption, photons, pwf
+
+
+def stability_map(
+    shape: tuple[int, int] = (256, 256),
+    axes: dict[str, list] | None = None,
+    methods: list[tuple[str, str, int, dict]] | None = None,
+    seed: int = 0,
+    progress: bool = True,
+) -> list[dict]:
+    """All rows of the map: one per (axis, value, method), with errors and wall time."""
+    axes = AXES if axes is None else axes
+    methods = METHOD_RUNS if methods is None else methods
+    base = SpeckleSetup(shape=shape)
+    fov = shape[1] * base.pixel_size_m
+    phantom0 = default_phantom(fov, np.random.default_rng(seed + 1), height_m=shape[0] * base.pixel_size_m)
+    base_max_phase = None
+    rows = []
+    for axis, values in axes.items():
+        for value in values:
+            setup, lateral, target, absorption, photons, pwf_over = _point_setups(axis, value, base)
+            phantom = scaled_phantom(phantom0, lateral) if lateral != 1.0 else phantom0
+            if base_max_phase is None:
+                base_max_phase = float(np.abs(Scene(base, phantom0, 1.0, 1, seed).phase).max())
+            # the gradient axis keeps the base's largest phase; thickness sets it
+            factor = 1.0 / lateral if target is None else target * np.pi / base_max_phase
+            runs = [m for m in methods if m[1] == "pwf"] if axis in PWF_ONLY_AXES else methods
+            scene = Scene(setup, phantom, factor, max(k for _, _, k, _ in runs), seed, absorption)
+            wl = optics.wavelength_m(setup.energy_eV)
+            l2 = setup.diffuser_detector_distance_m
+            for label, method, k, opts in runs:
+                s, r = scene.images(photons, k, seed=seed + 7)
+                kw = dict(opts)
+                if method == "pwf":
+                    kw.update(
+                        coherence_length_x_m=setup.coherence_length_x_m,
+                        coherence_length_y_m=setup.coherence_length_y_m,
+                    )
+                    kw.update(pwf_over)
+                t0 = time.perf_counter()
+                res = retrieve_projection(
+                    s[0] if k == 1 else s,
+                    r[0] if k == 1 else r,
+                    method=method,
+                    energy_eV=setup.energy_eV,
+                    pixel_size_m=setup.pixel_size_m,
+                    sample_diffuser_distance_m=setup.sample_diffuser_distance_m,
+                    diffuser_detector_distance_m=l2,
+                    background_mask=scene.background,
+                    **kw,
+                )
+                wall = time.perf_counter() - t0
+                err = errors(
+                    res.phase,
+                    res.attenuation if method != "gf" else None,
+                    scene.phase,
+                    scene.attenuation,
+                    scene.background,
+                )
+                row = {
+                    "axis": axis,
+                    "value": value,
+                    "method": label,
+                    "K": k,
+                    "max_phase_pi": float(np.abs(scene.phase).max() / np.pi),
+                    "displacement_over_grain": displacement_px(scene.phase, wl, l2, setup.pixel_size_m)
+                    / speckle_grain_px(scene.clean_references[0]),
+                    "photons": photons,
+                    **err,
+                    "holds": bool(err["phase_error"] < PHASE_ERROR_THRESHOLD),
+                    "iterations": res.iterations,
+                    "wall_s": wall,
+                }
+                rows.append(row)
+                if progress:
+                    print(
+                        f"{axis:>16} {str(value):>18}  {label:<14} phase err {row['phase_error']:7.3f}  "
+                        f"att err {row['attenuation_error']:7.3f}  gain {row['phase_gain']:6.2f}  "
+                        f"{wall:6.1f} s",
+                        flush=True,
+                    )
+    return rows
+
+
+def holds_summary(rows: list[dict]) -> dict[tuple[str, str], str]:
+    """Per (axis, method): the axis values where the method holds, in words."""
+    out = {}
+    for axis in dict.fromkeys(r["axis"] for r in rows):
+        for method in dict.fromkeys(r["method"] for r in rows if r["axis"] == axis):
+            pts = [r for r in rows if r["axis"] == axis and r["method"] == method]
+            held = [_fmt(r["value"]) for r in pts if r["holds"]]
+            if len(held) == len(pts):
+                out[axis, method] = "holds everywhere"
+            elif not held:
+                out[axis, method] = "fails everywhere"
+            else:
+                out[axis, method] = "holds at " + ", ".join(held)
+    return out
+
+
+def _fmt(v) -> str:
+    if isinstance(v, str):
+        return v
+    if isinstance(v, float) and (abs(v) >= 1e3 or (v != 0 and abs(v) < 1e-2)):
+        return f"{v:.0e}"
+    return f"{v:g}"
+
+
+UNITS = {
+    "dose": "photons/px",
+    "max_phase_pi": "pi",
+    "absorption": "x base beta",
+    "gradient": "x base gradient",
+    "l2_mm": "mm",
+    "coherence_error": "relative",
+    "ablation": "",
+}
+
+
+def write_stability_map(rows: list[dict], out_dir: str | Path, device: str) -> None:
+    """``stability_map.csv``, ``.md`` (tables and the holds summary) and ``.png``."""
+    from .bench import write_rows_csv
+
+    out = write_rows_csv(out_dir, "stability_map.csv", rows)
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    lines = [
+        f"# Stability map: where each method fails ({device})",
+        "",
+        "`pwf-dask bench stability`: one projection of the paper's optics (10 keV, 0.65 um pixels, L1 = 3 mm,",
+        "L2 = 20 mm, sub-pixel SiC sandpaper, cellulose rod with glass beads, 1e4 ph/px) varied along one axis at",
+        "a time. Entry: phase RMSE inside the sample / RMS true phase (background zeroed on the true sample-free",
+        f"pixels for every method). A method holds while this is below {PHASE_ERROR_THRESHOLD}; "
+        "**bold** = fails.",
+        "Columns `phase` and `d/grain`: the largest true phase (pi) and the 99th-percentile speckle displacement",
+        "over the speckle grain (autocorrelation FWHM) at that point.",
+        "",
+    ]
+    summary = holds_summary(rows)
+    for axis in dict.fromkeys(r["axis"] for r in rows):
+        pts = [r for r in rows if r["axis"] == axis]
+        ms = [m for m in methods if any(r["method"] == m for r in pts)]
+        lines += [
+            f"## {axis} ({UNITS.get(axis, '')})".replace(" ()", ""),
+            "",
+            "| value | phase (pi) | d/grain | " + " | ".join(ms) + " |",
+            "|---|---:|---:|" + "---:|" * len(ms),
+        ]
+        for value in dict.fromkeys(r["value"] for r in pts):
+            at = {r["method"]: r for r in pts if r["value"] == value}
+            any_row = next(iter(at.values()))
+            cells = []
+            for m in ms:
+                r = at.get(m)
+                if r is None:
+                    cells.append("")
+                    continue
+                e = f"{r['phase_error']:.3f}" if np.isfinite(r["phase_error"]) else "diverged"
+                cells.append(e if r["holds"] else f"**{e}**")
+            lines.append(
+                f"| {_fmt(value)} | {any_row['max_phase_pi']:.1f} | {any_row['displacement_over_grain']:.2f} | "
+                + " | ".join(cells)
+                + " |"
+            )
+        lines += ["", *[f"- {m}: {summary[axis, m]}" for m in ms], ""]
+    (out / "stability_map.md").write_text("\n".join(lines) + "\n")
+    stability_plot(out / "stability_map.png", rows)
+
+
+def stability_plot(path, rows: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    axes_names = list(dict.fromkeys(r["axis"] for r in rows))
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    colors = {m: f"C{i}" for i, m in enumerate(methods)}
+    ncol = 3
+    nrow = (len(axes_names) + ncol - 1) // ncol
+    fig, axs = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 3.3 * nrow), squeeze=False)
+    for ax, axis in zip(axs.flat, axes_names):
+        pts = [r for r in rows if r["axis"] == axis]
+        values = list(dict.fromkeys(r["value"] for r in pts))
+        categorical = any(isinstance(v, str) for v in values)
+        for m in methods:
+            mr = [r for r in pts if r["method"] == m]
+            if not mr:
+                continue
+            xs = [values.index(r["value"]) if categorical else r["value"] for r in mr]
+            ys = [min(r["phase_error"], 10.0) for r in mr]
+            ax.plot(xs, ys, "o-", color=colors[m], label=m, ms=4)
+        ax.axhline(PHASE_ERROR_THRESHOLD, color="k", ls="--", lw=0.8)
+        ax.set_yscale("log")
+        if categorical:
+            ax.set_xticks(range(len(values)))
+            ax.set_xticklabels(values, rotation=20, fontsize=7)
+        elif axis in ("dose", "max_phase_pi", "gradient", "l2_mm"):
+            ax.set_xscale("log")
+        elif axis == "absorption":
+            ax.set_xscale("symlog", linthresh=0.1)
+        ax.set_title(f"{axis} ({UNITS.get(axis, '')})".replace(" ()", ""), fontsize=9)
+        ax.set_ylabel("phase error (rel. RMSE)", fontsize=8)
+    for ax in list(axs.flat)[len(axes_names) :]:
+        ax.axis("off")
+    axs.flat[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def run_stability_benchmark(out_dir: str | Path, quick: bool = False) -> list[dict]:
+    """``pwf-dask bench stability``: the full map (``quick``: a 96 x 96 frame, two values per axis)."""
+    from .bench import device_name
+
+    if quick:
+        axes = {a: [v[0], v[-1]] for a, v in AXES.items()}
+        rows = stability_map(shape=(96, 96), axes=axes)
+    else:
+        rows = stability_map()
+    write_stability_map(rows, out_dir, device_name(np))
+    return rows

@@ -1,0 +1,63 @@
+"""The stability map's measures against analytic values, and a two-point map end to end."""
+
+import csv
+
+import numpy as np
+import pytest
+
+from pwf_dask import optics, stability
+from pwf_dask.simulation import Phantom, Sphere
+
+
+def test_speckle_grain_of_gaussian_correlated_field():
+    """A white field smoothed by a Gaussian of std s has a Gaussian autocorrelation of std
+    s sqrt(2): FWHM = 2 sqrt(2 ln 2) sqrt(2) s."""
+    rng = np.random.default_rng(0)
+    n, s = 512, 3.0
+    f = np.fft.fftfreq(n)
+    g = np.exp(-2 * np.pi**2 * s**2 * (f[:, None] ** 2 + f[None, :] ** 2))
+    field = np.fft.ifft2(np.fft.fft2(rng.normal(size=(n, n))) * g).real
+    grain = stability.speckle_grain_px(1.0 + 0.1 * field)
+    assert grain == pytest.approx(2 * np.sqrt(2 * np.log(2)) * np.sqrt(2) * s, rel=0.05)
+
+
+def test_displacement_of_a_phase_ramp():
+    """A ramp of a rad/px displaces the speckle by lambda L2 a / (2 pi p^2) pixels (CONTRACT §2)."""
+    wl, l2, p, a = optics.wavelength_m(1e4), 0.02, 0.65e-6, 0.3
+    phase = a * np.arange(64)[None, :] * np.ones((64, 1))
+    assert stability.displacement_px(phase, wl, l2, p) == pytest.approx(wl * l2 * a / (2 * np.pi * p**2))
+
+
+def test_scaled_phantom_scales_line_integrals():
+    ph = Phantom(cylinder_radius_m=40e-6, spheres=(Sphere(10e-6, 5e-6, -8e-6, 12e-6),))
+    x = np.linspace(-60e-6, 60e-6, 121)
+    d1, b1 = ph.line_integrals(30.0, x, x, 1e4)
+    d2, b2 = stability.scaled_phantom(ph, 0.5).line_integrals(30.0, 0.5 * x, 0.5 * x, 1e4)
+    np.testing.assert_allclose(d2, 0.5 * d1, rtol=1e-9, atol=1e-20)
+    np.testing.assert_allclose(b2, 0.5 * b1, rtol=1e-9, atol=1e-22)
+
+
+def test_errors_are_zero_for_the_truth_and_one_for_nothing():
+    yy, xx = np.mgrid[-16:16, -16:16]
+    truth = -2.0 * np.clip(1 - (xx**2 + yy**2) / 100.0, 0, None)
+    bgm = truth == 0
+    e = stability.errors(truth + 0.3, -0.1 * truth, truth, -0.1 * truth, bgm)
+    assert e["phase_error"] < 1e-12 and e["attenuation_error"] < 1e-12 and e["phase_gain"] == pytest.approx(1)
+    assert stability.errors(0 * truth, None, truth, truth, bgm)["phase_error"] == pytest.approx(1)
+
+
+def test_two_dose_map_end_to_end(tmp_path):
+    """More photons, smaller error, for PWF and LCS; the files are written and name failures."""
+    methods = [stability.METHOD_RUNS[0], ("LCS K=3", "lcs", 3, {})]
+    rows = stability.stability_map(shape=(64, 64), axes={"dose": [3e1, 1e5]}, methods=methods, progress=False)
+    assert len(rows) == 4
+    for label in ("PWF K=1", "LCS K=3"):
+        lo, hi = [r for r in rows if r["method"] == label]
+        assert lo["phase_error"] > hi["phase_error"], label
+        assert hi["phase_error"] < stability.PHASE_ERROR_THRESHOLD, label
+    stability.write_stability_map(rows, tmp_path, "test")
+    with open(tmp_path / "stability_map.csv") as fh:
+        assert len(list(csv.DictReader(fh))) == 4
+    md = (tmp_path / "stability_map.md").read_text()
+    assert "## dose" in md and "PWF K=1:" in md
+    assert (tmp_path / "stability_map.png").stat().st_size > 1000
