@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# Reproduce the committed results in workflows/results/ (run from the repository root after
+# the README's install command). Each line is one benchmark; run any of them alone.
+#   speed_accuracy.*   ~5 min on 2 cores: PWF, LCS K=3/6/12, UMPA, GF on the demo scan
+#   stability_map.*    ~10 min: where each method fails (one projection, 256 x 256)
+#   bench_iteration_*  ~2 min: PWF iteration time / FFT time (add --device gpu on a GPU)
+#   bench_scan_cpu.*   ~3 min: projections/s/worker on a LocalCluster, full-scan model
+set -euo pipefail
+PWF=${PWF:-.venv/bin/pwf-dask}
+OUT=${OUT:-workflows/results}
+case "${1:-all}" in
+  accuracy) "$PWF" bench accuracy --out "$OUT" ;;
+  stability) "$PWF" bench stability --out "$OUT" ;;
+  iteration) "$PWF" bench iteration --out "$OUT" ;;
+  scan) "$PWF" bench scan --out "$OUT" ;;
+  all)
+    for b in accuracy stability iteration scan; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|stability|iteration|scan|all]" >&2; exit 2 ;;
+esac
