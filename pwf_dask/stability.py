@@ -393,10 +393,15 @@ def stability_plot(path, rows: list[dict]) -> None:
         if categorical:
             ax.set_xticks(range(len(values)))
             ax.set_xticklabels(values, rotation=20, fontsize=7)
-        elif axis in ("dose", "max_phase_pi", "gradient", "l2_mm"):
-            ax.set_xscale("log")
-        elif axis == "absorption":
-            ax.set_xscale("symlog", linthresh=0.1)
+        else:
+            if axis in ("dose", "max_phase_pi", "gradient", "l2_mm"):
+                ax.set_xscale("log")
+            elif axis == "absorption":
+                ax.set_xscale("symlog", linthresh=0.1)
+                ax.set_xlim(-0.02, max(values) * 1.3)
+            ax.minorticks_off()
+            ax.set_xticks(values)
+            ax.set_xticklabels([_fmt(v) for v in values], fontsize=7)
         ax.set_title(f"{axis} ({UNITS.get(axis, '')})".replace(" ()", ""), fontsize=9)
         ax.set_ylabel("phase error (rel. RMSE)", fontsize=8)
     for ax in list(axs.flat)[len(axes_names) :]:
