@@ -197,13 +197,17 @@ def _compute_options(p: argparse.ArgumentParser) -> None:
 
 
 def _retrieval_options(p: argparse.ArgumentParser) -> None:
-    from .solver import PAPER_TOL
+    from .solver import DEFAULT_ALPHA, PAPER_TOL
 
     p.add_argument("--method", default="pwf", choices=["pwf", "lcs", "umpa", "gf"])
     p.add_argument("--max-iter", type=int, default=2000)
     p.add_argument("--tol", type=float, default=PAPER_TOL, help="1 - field correlation of successive iterates")
     p.add_argument("--gamma", type=float, default=1.0)
-    p.add_argument("--alpha", default="0.1+0.01j")
+    p.add_argument(
+        "--alpha",
+        default=str(DEFAULT_ALPHA).strip("()"),
+        help="regularization weights (the paper's: 0.1+0.01j; README, Numerical choices)",
+    )
     p.add_argument(
         "--phase-scale",
         type=float,

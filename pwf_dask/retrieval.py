@@ -84,7 +84,7 @@ def retrieve_projection(
     max_iter: int = 2000,
     tol: float = solver.PAPER_TOL,
     gamma: float = 1.0,
-    alpha: complex | str = 0.1 + 0.01j,
+    alpha: complex | str = solver.DEFAULT_ALPHA,
     step: float = 1.0,
     coherence_length_x_m: float | None = None,
     coherence_length_y_m: float | None = None,

@@ -21,7 +21,7 @@ from .backend import resolve_device, to_numpy
 from .cluster import Runner, worker_fft_threads
 from .optics import wavelength_m
 from .retrieval import METHODS
-from .solver import PAPER_TOL
+from .solver import DEFAULT_ALPHA, PAPER_TOL
 
 #: methods that combine the K diffuser positions of one angle into one projection
 MULTI_IMAGE = ("lcs", "umpa")
@@ -96,7 +96,7 @@ def retrieve_scan(
     max_iter: int = 2000,
     tol: float = PAPER_TOL,
     gamma: float = 1.0,
-    alpha="0.1+0.01j",
+    alpha=DEFAULT_ALPHA,
     step: float = 1.0,
     precision: str = "single",
     runner: Runner | None = None,
