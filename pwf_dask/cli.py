@@ -206,7 +206,7 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--alpha",
         default=str(DEFAULT_ALPHA).strip("()"),
-        help="regularization weights (the paper's: 0.1+0.01j; README, Numerical choices)",
+        help="regularization weights (the paper's; 0.1+0.05j for small strong features, README)",
     )
     p.add_argument(
         "--phase-scale",

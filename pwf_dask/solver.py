@@ -47,13 +47,13 @@ from .backend import FFT, abs2, complex_dtype, complex_exp, real_dtype
 #: The paper's stop rule: normalised correlation of successive fields > 10^-0.00001.
 PAPER_TOL = 1.0 - 10.0 ** (-0.00001)
 
-#: Regularization weights of Algorithm S2: the paper's value, and our default. Im(alpha)
-#: = 0.05 keeps the small-bead phase contrast within 15 % (+13 % against +28 % at 512^2),
-#: brings the demo scan's bead beta within 20 %, and holds the stability map's weak (1 pi),
-#: absorbing (10x beta), low-dose and L2 = 10 mm points better; it costs 0.003 in relative
-#: phase error at the base point (README, "Numerical choices").
-PAPER_ALPHA = 0.1 + 0.01j
-DEFAULT_ALPHA = 0.1 + 0.05j
+#: Regularization weights of Algorithm S2: the paper's value (the default), and the one we
+#: recommend for small strong features. Im(alpha) = 0.05 keeps the small-bead phase contrast
+#: within 15 % (+13 % against +28 % at 512^2), brings the demo scan's bead beta within 20 %,
+#: and holds the stability map's weak (1 pi), absorbing (10x beta), low-dose and L2 = 10 mm
+#: points better, for 0.003 more relative phase error at the base point (README).
+DEFAULT_ALPHA = 0.1 + 0.01j
+STRONG_FEATURE_ALPHA = 0.1 + 0.05j
 
 
 @dataclass
