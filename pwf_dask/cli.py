@@ -162,31 +162,19 @@ def _run(args) -> int:
 
 
 def _bench(args) -> int:
-    from .bench import run_iteration_benchmark
+    from . import bench, stability
 
-    if args.what == "iteration":
-        run_iteration_benchmark(args.out, device=args.device, quick=args.quick)
-        print(f"results written to {args.out}")
-        return 0
-    if args.what == "accuracy":
-        from .bench import run_accuracy_benchmark
-
-        run_accuracy_benchmark(args.out)
-        print(f"results written to {args.out}")
-        return 0
-    if args.what == "scan":
-        from .bench import run_scan_benchmark
-
-        run_scan_benchmark(args.out)
-        print(f"results written to {args.out}")
-        return 0
-    if args.what == "stability":
-        from .stability import run_stability_benchmark
-
-        run_stability_benchmark(args.out, quick=args.quick)
-        print(f"results written to {args.out}")
-        return 0
-    raise SystemExit(f"pwf-dask bench: unknown benchmark {args.what!r}")
+    runs = {
+        "iteration": lambda: bench.run_iteration_benchmark(args.out, device=args.device, quick=args.quick),
+        "accuracy": lambda: bench.run_accuracy_benchmark(args.out),
+        "scan": lambda: bench.run_scan_benchmark(args.out),
+        "stability": lambda: stability.run_stability_benchmark(args.out, quick=args.quick),
+    }
+    if args.what not in runs:
+        raise SystemExit(f"pwf-dask bench: unknown benchmark {args.what!r}")
+    runs[args.what]()
+    print(f"results written to {args.out}")
+    return 0
 
 
 def _compute_options(p: argparse.ArgumentParser) -> None:

@@ -1,0 +1,23 @@
+"""`pwf-dask bench` from the command line: files written, ratios measured in the same run."""
+
+import csv
+
+import pytest
+
+from pwf_dask import cli
+
+
+def test_bench_iteration_quick_writes_its_files(tmp_path, capsys):
+    assert cli.main(["bench", "iteration", "--quick", "--out", str(tmp_path)]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "bench_iteration_cpu.csv")))
+    assert {r["variant"].split(",")[0] for r in rows} == {"L1>0", "L1=0"}
+    for r in rows:
+        # a ratio, not a timing: both sides measured in the same run
+        assert float(r["ratio"]) == pytest.approx(float(r["iteration_ms"]) / float(r["fft_ms"]), rel=1e-6)
+    assert (tmp_path / "bench_iteration_cpu.png").stat().st_size > 1000
+    assert "results written" in capsys.readouterr().out
+
+
+def test_bench_unknown_name_is_refused():
+    with pytest.raises(SystemExit):
+        cli.main(["bench", "nonsense"])
