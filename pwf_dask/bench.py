@@ -275,6 +275,7 @@ ACCURACY_RUNS = [
     ("PWF 300 it", "pwf", 1, dict(max_iter=300)),
     ("PWF 300 it float64", "pwf", 1, dict(max_iter=300, precision="double")),
     ("PWF 300 it kappa 4", "pwf", 1, dict(max_iter=300, phase_scale=4.0)),
+    ("PWF 300 it alpha .05j", "pwf", 1, dict(max_iter=300, alpha=solver.STRONG_FEATURE_ALPHA)),
     ("LCS K=3", "lcs", 3, {}),
     ("LCS K=6", "lcs", 6, {}),
     ("LCS K=12", "lcs", 12, {}),
