@@ -105,11 +105,19 @@ def test_upsampled_intensity_is_not_aliased(rng):
     assert np.abs(f1 - 2).max() > 1.0  # aliased: 2 + 2 cos(2 pi 8 x / n)
 
 
-def test_step_is_safe_even_when_far_too_long(rng):
-    """eta = 1000 must not run to NaN: the backtracking halves it until J descends."""
+@pytest.mark.parametrize("restart", ["gradient", "function"])
+def test_step_is_safe_even_when_far_too_long(rng, restart):
+    """eta = 1000 must not run to NaN under either momentum restart: the backtracking halves
+    it until J descends."""
     model, y = make_model(rng, precision="single")
-    sol = solver.pwf(y.astype(np.float32), model, step=1000.0, max_iter=60, tol=0)
+    sol = solver.pwf(y.astype(np.float32), model, step=1000.0, max_iter=60, tol=0, restart=restart)
     assert sol.backtracks > 0 and sol.step < 1000.0
     assert np.all(np.isfinite(sol.psi))
     h = sol.objective_history
     assert h[-1] < h[0]
+
+
+def test_unknown_restart_rule_is_refused(rng):
+    model, y = make_model(rng)
+    with pytest.raises(ValueError, match="restart must be"):
+        solver.pwf(y, model, max_iter=2, restart="sometimes")
