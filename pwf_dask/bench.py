@@ -369,10 +369,9 @@ def _pareto(points) -> set[int]:
 
 
 def _speed_accuracy_plot(path, rows, pareto) -> None:
-    import matplotlib
+    from .plots import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     colors = {"pwf": "C0", "lcs": "C1", "umpa": "C2", "gf": "C3"}
@@ -395,6 +394,4 @@ def _speed_accuracy_plot(path, rows, pareto) -> None:
     ax.set_xlabel("wall time, retrieve + tomo + fsc (s)")
     ax.set_ylabel("delta RMSE / mean delta (inside the sample)")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)

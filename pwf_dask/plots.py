@@ -1,4 +1,5 @@
-"""Figures a user looks at: projection panels (speckle, phase, attenuation, residual)."""
+"""Figures a user looks at: projection panels (speckle, phase, attenuation, residual),
+tomogram slices, FSC curves and benchmark charts."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 
-def _mpl():
+def pyplot():
+    """matplotlib.pyplot on the non-interactive Agg backend (headless workers, CI)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -16,11 +18,19 @@ def _mpl():
     return plt
 
 
+def save_figure(fig, path: str | Path) -> Path:
+    """Lay out, write at 90 dpi and close (figures are made in loops; close frees them)."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    pyplot().close(fig)
+    return Path(path)
+
+
 def projection_panels(
     path: str | Path, *, sample, reference, result, truth_phase=None, truth_attenuation=None, pixel_size_m: float = 1.0
 ) -> Path:
     """PNG of the speckle images, retrieved phase and attenuation, residual (and the truth)."""
-    plt = _mpl()
+    plt = pyplot()
     from .backend import to_numpy
 
     panels = [
@@ -51,16 +61,12 @@ def projection_panels(
         f"PWF: {result.iterations} iterations, converged={result.converged}, "
         f"residual RMSE {result.residual_rmse:.2f} % of the mean reference"
     )
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def bench_ratio_plot(path: str | Path, rows: list[dict]) -> Path:
     """Iteration time / FFT time per size, one line per variant."""
-    plt = _mpl()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     for variant in sorted({r["variant"] for r in rows}):
         sel = [r for r in rows if r["variant"] == variant]
@@ -70,15 +76,12 @@ def bench_ratio_plot(path: str | Path, rows: list[dict]) -> Path:
     ax.set_ylabel("PWF iteration time / complex64 FFT time")
     ax.axhline(20, color="gray", ls="--", lw=1)
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path)
 
 
 def tomogram_panels(path: str | Path, recon) -> Path:
     """delta and beta slices (middle row, every position) of a reconstruction dataset."""
-    plt = _mpl()
+    plt = pyplot()
     npos = recon.sizes["position"]
     mid = recon.sizes["y"] // 2
     fig, axes = plt.subplots(2, npos, figsize=(4.2 * npos, 7.2), squeeze=False)
@@ -95,15 +98,12 @@ def tomogram_panels(path: str | Path, recon) -> Path:
             ax.set_xlabel("u (um)")
             ax.set_ylabel("v (um)")
             fig.colorbar(im, ax=ax, shrink=0.8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path)
 
 
 def fsc_plot(path: str | Path, recon) -> Path:
     """FSC curves with their criteria and resolutions."""
-    plt = _mpl()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     f = recon["frequency"].values * 1e-6
     for ax, name in zip(axes, ("delta", "beta")):
@@ -133,7 +133,4 @@ def fsc_plot(path: str | Path, recon) -> Path:
         ax.set_title(name)
         ax.set_ylim(-0.2, 1.05)
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path)

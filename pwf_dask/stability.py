@@ -215,20 +215,33 @@ def stability_map(
     base = SpeckleSetup(shape=shape)
     fov = shape[1] * base.pixel_size_m
     phantom0 = default_phantom(fov, np.random.default_rng(seed + 1), height_m=shape[0] * base.pixel_size_m)
-    base_max_phase = None
+    kmax = max(k for _, _, k, _ in methods)
+    scenes: dict[tuple, Scene] = {}
+
+    def scene_for(setup, phantom, lateral, factor, absorption) -> Scene:
+        # the dose, coherence and ablation points share the base scene: simulate it once
+        key = (repr(setup), lateral, factor, absorption)
+        if key not in scenes:
+            scenes[key] = Scene(setup, phantom, factor, kmax, seed, absorption)
+        return scenes[key]
+
+    base_max_phase = float(np.abs(scene_for(base, phantom0, 1.0, 1.0, 1.0).phase).max())
     rows = []
     for axis, values in axes.items():
         for value in values:
             setup, lateral, target, absorption, photons, pwf_over = _point_setups(axis, value, base)
             phantom = scaled_phantom(phantom0, lateral) if lateral != 1.0 else phantom0
-            if base_max_phase is None:
-                base_max_phase = float(np.abs(Scene(base, phantom0, 1.0, 1, seed).phase).max())
             # the gradient axis keeps the base's largest phase; thickness sets it
             factor = 1.0 / lateral if target is None else target * np.pi / base_max_phase
             runs = [m for m in methods if m[1] == "pwf"] if axis in PWF_ONLY_AXES else methods
-            scene = Scene(setup, phantom, factor, max(k for _, _, k, _ in runs), seed, absorption)
+            scene = scene_for(setup, phantom, lateral, factor, absorption)
             wl = optics.wavelength_m(setup.energy_eV)
             l2 = setup.diffuser_detector_distance_m
+            point = {
+                "max_phase_pi": float(np.abs(scene.phase).max() / np.pi),
+                "displacement_over_grain": displacement_px(scene.phase, wl, l2, setup.pixel_size_m)
+                / speckle_grain_px(scene.clean_references[0]),
+            }
             for label, method, k, opts in runs:
                 s, r = scene.images(photons, k, seed=seed + 7)
                 kw = dict(opts)
@@ -263,9 +276,7 @@ def stability_map(
                     "value": value,
                     "method": label,
                     "K": k,
-                    "max_phase_pi": float(np.abs(scene.phase).max() / np.pi),
-                    "displacement_over_grain": displacement_px(scene.phase, wl, l2, setup.pixel_size_m)
-                    / speckle_grain_px(scene.clean_references[0]),
+                    **point,
                     "photons": photons,
                     **err,
                     "holds": bool(err["phase_error"] < PHASE_ERROR_THRESHOLD),
@@ -368,10 +379,9 @@ def write_stability_map(rows: list[dict], out_dir: str | Path, device: str) -> N
 
 
 def stability_plot(path, rows: list[dict]) -> None:
-    import matplotlib
+    from .plots import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     axes_names = list(dict.fromkeys(r["axis"] for r in rows))
     methods = list(dict.fromkeys(r["method"] for r in rows))
@@ -409,9 +419,7 @@ def stability_plot(path, rows: list[dict]) -> None:
     for ax in list(axs.flat)[len(axes_names) :]:
         ax.axis("off")
     axs.flat[0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def run_stability_benchmark(out_dir: str | Path, quick: bool = False) -> list[dict]:
