@@ -89,6 +89,7 @@ def _simulate(args) -> int:
         seed=args.seed,
         raw=not args.corrected,
         rotation_axis_offset_px=args.axis_offset_px,
+        diffuser_upstream_m=args.diffuser_upstream_m,
     )
     print(f"wrote scan {path}")
     return 0
@@ -217,6 +218,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--axis-offset-px", type=float, default=0.0, help="rotation axis offset from the frame centre")
     s.add_argument("--corrected", action="store_true", help="write flat/dark-corrected float32 instead of counts")
+    s.add_argument(
+        "--diffuser-upstream-m",
+        type=float,
+        default=0.0,
+        help="put the diffuser this far upstream of the sample (the scan then has L1 = 0)",
+    )
     s.set_defaults(func=_simulate)
     r = sub.add_parser("retrieve", help="phase and attenuation of every projection (resumable)")
     r.add_argument("scan")

@@ -95,6 +95,7 @@ def retrieve_projection(
     min_iter: int = 50,
     patience: int = 10,
     rtol: float = 1e-3,
+    jtol: float = 1e-5,
     phase_screen_iter: int = 0,
     background_mask=None,
     zero_background: bool = True,
@@ -208,6 +209,7 @@ def retrieve_projection(
         patience=patience,
         step_search=step_search,
         rtol=rtol,
+        jtol=jtol,
     )
     psi = sol.psi[model.frame]
     phase = to_numpy(psi.imag).astype(np.float64)
@@ -235,6 +237,7 @@ def retrieve_projection(
         "min_iter": min_iter,
         "patience": patience,
         "rtol": rtol,
+        "jtol": jtol,
         "preconditioner": preconditioner,
         "precision": precision,
         "normalization": normalization,

@@ -8,6 +8,8 @@ by ``margin_px`` detector pixels each side (so periodic wrap-around never reache
 2. propagation over L1 (angular spectrum; skipped when L1 = 0);
 3. a sandpaper-like diffuser: grains of silicon carbide with radii spread well below the
    detector pixel, in several layers (thin-object transmission);
+   (or, with ``diffuser_upstream_m``, the diffuser before the sample: diffuser, free space,
+   sample, the geometry the algorithms see as L1 = 0);
 4. propagation over L2, intensity, partial-coherence blur by the IPSF, Eq. (IPSF);
 5. detector pixel integration (block mean), Poisson noise at ``photons`` per pixel.
 
@@ -200,6 +202,19 @@ class SpeckleSetup:
     diffuser_material: str = "silicon carbide"
     diffuser_radius_median_m: float = 1.2e-6
     rotation_axis_offset_m: float = 0.0
+    #: > 0: the diffuser sits this far *upstream* of the sample instead of downstream. The
+    #: algorithms then see L1 = 0 and L2 = the sample-detector distance
+    #: (``diffuser_detector_distance_m``); the reference is the diffuser over both distances.
+    diffuser_upstream_m: float = 0.0
+
+    def __post_init__(self):
+        if self.diffuser_upstream_m < 0:
+            raise ValueError(f"diffuser_upstream_m must be >= 0, got {self.diffuser_upstream_m}")
+        if self.diffuser_upstream_m > 0 and self.sample_diffuser_distance_m != 0:
+            raise ValueError(
+                "a diffuser upstream of the sample needs sample_diffuser_distance_m = 0 (L1 = 0), got "
+                f"{self.sample_diffuser_distance_m}"
+            )
 
     def fine_grid(self):
         s = self.oversample
@@ -255,6 +270,13 @@ class SpeckleSimulator:
         self.kernel2 = optics.angular_spectrum_kernel(
             self.fine_shape, self.spacing, self.wavelength, st.diffuser_detector_distance_m, np, np.complex128
         )
+        self.kernel_upstream = (
+            optics.angular_spectrum_kernel(
+                self.fine_shape, self.spacing, self.wavelength, st.diffuser_upstream_m, np, np.complex128
+            )
+            if st.diffuser_upstream_m
+            else None
+        )
         self.iotf = optics.iotf(
             self.fine_shape, self.spacing, st.coherence_length_x_m, st.coherence_length_y_m, np, np.float64
         )
@@ -277,13 +299,20 @@ class SpeckleSimulator:
     def intensity(self, sample_field: np.ndarray | None, diffuser: np.ndarray) -> np.ndarray:
         """Noise-free detector intensity (flat = 1) for a fine-grid sample field (None: reference)."""
         fft = self.fft
-        if sample_field is None:
-            a = np.ones(self.fine_shape, complex)
-        elif self.kernel1 is None:
-            a = sample_field
+        if self.kernel_upstream is not None:
+            # diffuser -> free space -> sample -> L2: the sample is lit by developed speckle
+            a = fft.ifft2(fft.fft2(diffuser) * self.kernel_upstream)
+            if sample_field is not None:
+                a = a * sample_field
         else:
-            a = fft.ifft2(fft.fft2(sample_field) * self.kernel1)
-        v = fft.ifft2(fft.fft2(a * diffuser) * self.kernel2)
+            if sample_field is None:
+                a = np.ones(self.fine_shape, complex)
+            elif self.kernel1 is None:
+                a = sample_field
+            else:
+                a = fft.ifft2(fft.fft2(sample_field) * self.kernel1)
+            a = a * diffuser
+        v = fft.ifft2(fft.fft2(a) * self.kernel2)
         inten = np.abs(v) ** 2
         if self.iotf is not None:
             inten = fft.irfft2(fft.rfft2(inten) * self.iotf, s=self.fine_shape)
@@ -418,6 +447,7 @@ def simulate_scan(
     seed: int = 0,
     raw: bool = True,
     rotation_axis_offset_px: float = 0.0,
+    diffuser_upstream_m: float = 0.0,
     progress: bool = True,
 ) -> str:
     """Simulate a whole scan into a Zarr store (CONTRACT §1) and return its path.
@@ -426,7 +456,8 @@ def simulate_scan(
     realisation with its own reference. ``raw``: uint16 counts with a flat (a beam profile)
     and a dark frame, as a detector delivers them; else flat/dark-corrected float32. The rotation
     axis sits ``rotation_axis_offset_px`` from the frame centre (the tomography stage must
-    find it). The phantom and the truth are recorded in the attributes.
+    find it). ``diffuser_upstream_m`` > 0 puts the diffuser that far upstream of the sample
+    (the scan records L1 = 0). The phantom and the truth are recorded in the attributes.
     """
     from . import scan_io
 
@@ -442,7 +473,11 @@ def simulate_scan(
             f"simulate: need >= 2 angles, >= 1 position, >= 32 x 32 px, photons > 0; got "
             f"{n_ang}, {n_pos}, {shape}, {photons}"
         )
-    setup = SpeckleSetup(shape=shape, photons=photons, rotation_axis_offset_m=rotation_axis_offset_px * 0.65e-6)
+    setup = SpeckleSetup(shape=shape, photons=photons)
+    if diffuser_upstream_m:
+        setup = SpeckleSetup(
+            shape=shape, photons=photons, sample_diffuser_distance_m=0.0, diffuser_upstream_m=diffuser_upstream_m
+        )
     p = setup.pixel_size_m
     setup.rotation_axis_offset_m = rotation_axis_offset_px * p
     rng = np.random.default_rng(seed + 1000)
@@ -461,6 +496,7 @@ def simulate_scan(
         "simulation_coherence_length_x_m": setup.coherence_length_x_m,
         "simulation_coherence_length_y_m": setup.coherence_length_y_m,
         "simulation_rotation_axis_offset_m": setup.rotation_axis_offset_m,
+        "simulation_diffuser_upstream_m": setup.diffuser_upstream_m,
         "simulation_phantom": phantom_to_json(phantom),
     }
     dtype = "uint16" if raw else "float32"

@@ -15,6 +15,9 @@ glass beads) is varied along one axis at a time:
   displacement; the source blur (the coherence PSF) grows in proportion to L2;
 - ``coherence_error``: PWF given coherence lengths 30 % short to 30 % long (the baselines do not
   use them);
+- ``geometry``: the paper's L1 = 3 mm; sample and diffuser in one plane (L1 = 0); the
+  diffuser 5 or 20 mm *upstream* of the sample (the sample lit by developed speckle; the
+  algorithms see L1 = 0 and L2 = the sample-detector distance);
 - ``ablation``: PWF without the preconditioner, without the regularization window (gamma = 0),
   and without the regularizer (alpha = 0).
 
@@ -48,6 +51,7 @@ AXES: dict[str, list] = {
     "gradient": [1.0, 2.0, 4.0, 8.0],
     "l2_mm": [5.0, 10.0, 20.0, 40.0, 80.0],
     "coherence_error": [-0.3, -0.15, 0.0, 0.15, 0.3],
+    "geometry": ["L1 = 3 mm", "L1 = 0", "diffuser 5 mm upstream", "diffuser 20 mm upstream"],
     "ablation": ["none", "no preconditioner", "gamma = 0", "alpha = 0"],
 }
 PWF_ONLY_AXES = ("coherence_error", "ablation")
@@ -190,6 +194,14 @@ def _point_setups(axis: str, value, base: SpeckleSetup):
             coherence_length_x_m=base.coherence_length_x_m * (1 + float(value)),
             coherence_length_y_m=base.coherence_length_y_m * (1 + float(value)),
         )
+    elif axis == "geometry":
+        l1, upstream = {
+            "L1 = 3 mm": (base.sample_diffuser_distance_m, 0.0),
+            "L1 = 0": (0.0, 0.0),
+            "diffuser 5 mm upstream": (0.0, 5e-3),
+            "diffuser 20 mm upstream": (0.0, 20e-3),
+        }[value]
+        setup = replace(base, sample_diffuser_distance_m=l1, diffuser_upstream_m=upstream)
     elif axis == "ablation":
         pwf = {
             "none": {},

@@ -150,6 +150,16 @@ def test_bad_scans_exit_nonzero_with_one_line_and_write_nothing(tiny_scan, tmp_p
     assert not recon.exists()
 
 
+def test_simulate_with_the_diffuser_upstream_records_l1_zero(tmp_path):
+    scan = tmp_path / "up.zarr"
+    argv = ["simulate", str(scan), "--shape", "32", "64", "--angles", "2", "--positions", "1"]
+    assert cli.main([*argv, "--diffuser-upstream-m", "5e-3"]) == 0
+    ds = xr.open_zarr(scan)
+    assert ds.attrs["sample_diffuser_distance_m"] == 0.0
+    assert ds.attrs["simulation_diffuser_upstream_m"] == 5e-3
+    assert scan_io.open_scan(scan) is not None  # a valid CONTRACT §1 scan
+
+
 def test_stages_in_wrong_order_are_refused(tmp_path, capsys):
     assert cli.main(["tomo", str(tmp_path / "none.zarr")]) != 0
     assert "no such reconstruction" in capsys.readouterr().err
