@@ -19,7 +19,7 @@ attenuation are the pixel means of the fine-grid line integrals.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -277,6 +277,7 @@ class SpeckleSimulator:
             if st.diffuser_upstream_m
             else None
         )
+        self._illumination = None  # (diffuser, its field at the sample) for the upstream geometry
         self.iotf = optics.iotf(
             self.fine_shape, self.spacing, st.coherence_length_x_m, st.coherence_length_y_m, np, np.float64
         )
@@ -300,8 +301,11 @@ class SpeckleSimulator:
         """Noise-free detector intensity (flat = 1) for a fine-grid sample field (None: reference)."""
         fft = self.fft
         if self.kernel_upstream is not None:
-            # diffuser -> free space -> sample -> L2: the sample is lit by developed speckle
-            a = fft.ifft2(fft.fft2(diffuser) * self.kernel_upstream)
+            # diffuser -> free space -> sample -> L2: the sample is lit by developed speckle,
+            # the same for every angle of a position, so it is propagated once per diffuser
+            if self._illumination is None or self._illumination[0] is not diffuser:
+                self._illumination = (diffuser, fft.ifft2(fft.fft2(diffuser) * self.kernel_upstream))
+            a = self._illumination[1]
             if sample_field is not None:
                 a = a * sample_field
         else:
@@ -475,9 +479,7 @@ def simulate_scan(
         )
     setup = SpeckleSetup(shape=shape, photons=photons)
     if diffuser_upstream_m:
-        setup = SpeckleSetup(
-            shape=shape, photons=photons, sample_diffuser_distance_m=0.0, diffuser_upstream_m=diffuser_upstream_m
-        )
+        setup = replace(setup, sample_diffuser_distance_m=0.0, diffuser_upstream_m=diffuser_upstream_m)
     p = setup.pixel_size_m
     setup.rotation_axis_offset_m = rotation_axis_offset_px * p
     rng = np.random.default_rng(seed + 1000)
