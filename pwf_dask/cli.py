@@ -104,6 +104,8 @@ def _retrieval_kwargs(args) -> dict:
         gamma=args.gamma,
         alpha=args.alpha,
         phase_scale=args.phase_scale,
+        diffuser_model=args.diffuser_model,
+        diffuser_material=args.diffuser_material,
     )
 
 
@@ -202,6 +204,17 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
         type=float,
         default=1.0,
         help="metric scale kappa of the phase block: faster phase convergence, same solution",
+    )
+    p.add_argument(
+        "--diffuser-model",
+        default="single-material",
+        choices=["single-material", "zero-phase"],
+        help="diffuser estimate from the reference: one material fitted (default) or the paper's zero phase",
+    )
+    p.add_argument(
+        "--diffuser-material",
+        default="silicon carbide",
+        help="the diffuser's material, for its beta/delta (xraydb): silicon carbide, alumina, ...",
     )
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from . import background as bg
 from . import calibration, optics, solver
 from .backend import FFT, get_array_module, to_numpy
+from .materials import delta_beta
 
 METHODS = ("pwf", "umpa", "lcs", "gf")
 
@@ -72,6 +73,69 @@ def auto_upsample(pixel_size_m: float, x_coh_m: float, y_coh_m: float, threshold
     return 2 if math.exp(-0.5 * math.pi * q * q * c * c) > threshold else 1
 
 
+def computational_shape(frame_shape: tuple[int, int], pad: int) -> tuple[int, int]:
+    """The FFT grid of a frame padded by ``pad`` pixels each side (fast FFT lengths)."""
+    ny, nx = frame_shape
+    return (solver.fast_len(ny + 2 * pad), solver.fast_len(nx + 2 * pad)) if pad else (ny, nx)
+
+
+def estimate_diffuser(
+    reference,
+    *,
+    energy_eV: float,
+    pixel_size_m: float,
+    diffuser_detector_distance_m: float,
+    coherence_length_x_m: float,
+    coherence_length_y_m: float,
+    pad: int | str = "auto",
+    diffuser_model: str = "single-material",
+    diffuser_material: str = "silicon carbide",
+    diffuser_beta_over_delta: float | None = None,
+    diffuser_refine_iter: int = 25,
+    phase_screen_iter: int = 0,
+    fft_workers: int | None = None,
+):
+    """The diffuser t_r exactly as :func:`retrieve_projection` estimates it with the same
+    options, for passing as its ``diffuser``: a scan computes it once per diffuser position."""
+    xp = get_array_module(reference)
+    ref = _check_image("reference", reference, xp)
+    wavelength = optics.wavelength_m(energy_eV)
+    if pad == "auto":
+        pad = auto_pad(
+            pixel_size_m, wavelength, diffuser_detector_distance_m, coherence_length_x_m, coherence_length_y_m
+        )
+    kappa = _diffuser_kappa(diffuser_model, diffuser_material, diffuser_beta_over_delta, energy_eV)
+    scale = float(xp.mean(ref))
+    if not scale > 0:
+        raise ValueError("reference has zero mean intensity")
+    return calibration.diffuser_transmission(
+        ref / scale,
+        pixel_size_m=pixel_size_m,
+        wavelength=wavelength,
+        diffuser_detector_distance_m=diffuser_detector_distance_m,
+        coherence_length_x_m=coherence_length_x_m,
+        coherence_length_y_m=coherence_length_y_m,
+        pad=int(pad),
+        shape=computational_shape(ref.shape, int(pad)),
+        phase_screen_iter=phase_screen_iter,
+        diffuser_model=diffuser_model,
+        beta_over_delta=kappa,
+        refine_iter=diffuser_refine_iter,
+        fft=FFT.for_module(xp, fft_workers),
+    )
+
+
+def _diffuser_kappa(model: str, material: str, beta_over_delta: float | None, energy_eV: float) -> float | None:
+    if model != "single-material":
+        return None
+    if beta_over_delta is not None:
+        if not beta_over_delta >= 0:
+            raise ValueError(f"diffuser_beta_over_delta must be >= 0, got {beta_over_delta}")
+        return float(beta_over_delta)
+    d, b = delta_beta(material, energy_eV)
+    return b / d
+
+
 def retrieve_projection(
     sample,
     reference,
@@ -97,6 +161,11 @@ def retrieve_projection(
     rtol: float = 1e-3,
     jtol: float = 1e-5,
     phase_screen_iter: int = 0,
+    diffuser_model: str = "single-material",
+    diffuser_material: str = "silicon carbide",
+    diffuser_beta_over_delta: float | None = None,
+    diffuser_refine_iter: int = 25,
+    diffuser=None,
     background_mask=None,
     zero_background: bool = True,
     normalization: str = "paper",
@@ -116,6 +185,13 @@ def retrieve_projection(
     ``pad`` extends the computational grid by that many pixels each side (``"auto"``: the
     diffraction spread plus blur). ``background_mask`` (True = sample-free) overrides the
     detected background used to zero the phase and attenuation.
+
+    The diffuser t_r is estimated from the reference (:mod:`pwf_dask.calibration`):
+    ``diffuser_model="single-material"`` (default) fits exp(-(kappa + i) theta) with kappa =
+    ``diffuser_beta_over_delta`` or, when None, beta/delta of ``diffuser_material`` at the
+    energy (xraydb) in ``diffuser_refine_iter`` L-BFGS iterations; ``"zero-phase"`` is the
+    paper's estimate. ``diffuser`` passes a transmission computed before (e.g. once per diffuser
+    position of a scan, by :func:`estimate_diffuser`); it must be on the computational grid.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
@@ -161,22 +237,31 @@ def retrieve_projection(
     rdt = np.float32 if precision == "single" else np.float64
     fft = FFT.for_module(xp, fft_workers)
     ny, nx = y.shape
-    shape = (solver.fast_len(ny + 2 * pad), solver.fast_len(nx + 2 * pad)) if pad else (ny, nx)
+    shape = computational_shape((ny, nx), pad)
     scale = float(xp.mean(ref))
     if not scale > 0:
         raise ValueError("reference has zero mean intensity")
-    t = calibration.diffuser_transmission(
-        ref / scale,
-        pixel_size_m=pixel_size_m,
-        wavelength=wavelength,
-        diffuser_detector_distance_m=diffuser_detector_distance_m,
-        coherence_length_x_m=coherence_length_x_m,
-        coherence_length_y_m=coherence_length_y_m,
-        pad=pad,
-        shape=shape,
-        phase_screen_iter=phase_screen_iter,
-        fft=fft,
-    )
+    kappa = _diffuser_kappa(diffuser_model, diffuser_material, diffuser_beta_over_delta, energy_eV)
+    if diffuser is None:
+        t = calibration.diffuser_transmission(
+            ref / scale,
+            pixel_size_m=pixel_size_m,
+            wavelength=wavelength,
+            diffuser_detector_distance_m=diffuser_detector_distance_m,
+            coherence_length_x_m=coherence_length_x_m,
+            coherence_length_y_m=coherence_length_y_m,
+            pad=pad,
+            shape=shape,
+            phase_screen_iter=phase_screen_iter,
+            diffuser_model=diffuser_model,
+            beta_over_delta=kappa,
+            refine_iter=diffuser_refine_iter,
+            fft=fft,
+        )
+    else:
+        t = xp.asarray(diffuser)
+        if t.shape != shape:
+            raise ValueError(f"diffuser has shape {t.shape}, the computational grid is {shape} (pad {pad})")
     model = solver.build_model(
         t,
         frame_shape=(ny, nx),
@@ -244,6 +329,10 @@ def retrieve_projection(
         "upsample": upsample,
         "pad": pad,
         "coherence_calibrated": calibrated,
+        "diffuser_model": diffuser_model,
+        "diffuser_given": diffuser is not None,
+        "diffuser_beta_over_delta": kappa,
+        "diffuser_refine_iter": diffuser_refine_iter,
         "restarts": sol.restarts,
         "backtracks": sol.backtracks,
         "stop_reason": sol.stop_reason,

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -41,6 +42,42 @@ def _scan_frames(scan_path):
     return g, flat, dark, corrected
 
 
+#: diffuser estimates of this process, one per (scan, position, options): every angle of a
+#: position shares its diffuser, so a worker fits it once (README, Diffuser estimate)
+_DIFFUSERS: dict = {}
+_DIFFUSERS_LOCK = threading.Lock()
+_DIFFUSER_OPTIONS = (
+    "pad",
+    "diffuser_model",
+    "diffuser_material",
+    "diffuser_beta_over_delta",
+    "diffuser_refine_iter",
+    "phase_screen_iter",
+)
+
+
+def _position_diffuser(scan_path, p, reference, attrs, coherence, options, device, fft_workers):
+    from .retrieval import estimate_diffuser
+
+    chosen = {k: options[k] for k in _DIFFUSER_OPTIONS if k in options}
+    key = (str(scan_path), p, tuple(coherence), device, tuple(sorted(chosen.items())))
+    with _DIFFUSERS_LOCK:  # threads of one worker wait for the one fit instead of repeating it
+        if key not in _DIFFUSERS:
+            if len(_DIFFUSERS) >= 8:
+                _DIFFUSERS.pop(next(iter(_DIFFUSERS)))
+            _DIFFUSERS[key] = estimate_diffuser(
+                reference,
+                energy_eV=float(attrs["energy_eV"]),
+                pixel_size_m=float(attrs["pixel_size_m"]),
+                diffuser_detector_distance_m=float(attrs["diffuser_detector_distance_m"]),
+                coherence_length_x_m=coherence[0],
+                coherence_length_y_m=coherence[1],
+                fft_workers=fft_workers,
+                **chosen,
+            )
+        return _DIFFUSERS[key]
+
+
 def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers, coherence):
     """One projection: read, correct, retrieve, write its chunks, then its diagnostics."""
     import zarr
@@ -58,6 +95,18 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
         sample = _read_corrected(g, "projections", (p, a), flat, dark, corrected)
         reference = _read_corrected(g, "reference", p, flat, dark, corrected)
     xp = resolve_device(device)
+    extra = {}
+    if options.get("method", "pwf") == "pwf":
+        extra["diffuser"] = _position_diffuser(
+            scan_path,
+            p,
+            xp.asarray(reference),
+            g.attrs,
+            coherence[p],
+            options,
+            device,
+            worker_fft_threads(fft_workers),
+        )
     res = retrieve_projection(
         xp.asarray(sample),
         xp.asarray(reference),
@@ -69,6 +118,7 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
         coherence_length_y_m=coherence[p][1],
         fft_workers=worker_fft_threads(fft_workers),
         **options,
+        **extra,
     )
     out = zarr.open_group(str(recon_path), mode="r+", use_consolidated=False)
     out["phase"][p, a] = to_numpy(res.phase).astype(np.float32)
@@ -143,6 +193,7 @@ def retrieve_scan(
         "coherence_lengths_per_position_m": json.dumps(coherence) if method == "pwf" else "n/a",
         "coherence_calibrated": info.coherence_length_x_m is None or info.coherence_length_y_m is None,
         "pwf_dask_version": __version__,
+        "diffuser_model": options.get("diffuser_model", "single-material") if method == "pwf" else "n/a",
         **{k: v for k, v in options.items() if isinstance(v, (int, float, str, bool))},
     }
     grp = scan_io.create_reconstruction(recon_path, info, params)
