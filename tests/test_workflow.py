@@ -196,8 +196,9 @@ def test_cylinder_delta_within_5_percent(demo_recon):
     assert float(np.median(demo_recon.delta[0].values[:, core])) == pytest.approx(dc, rel=0.05)
 
 
-@pytest.mark.xfail(strict=True, reason="known: bead delta +16-28 % with the paper's alpha; -5.3 % (position 0) "
-                   "and -10.7 % (position 1) with alpha = 0.1+0.05j (README, Where PWF fails)")
+@pytest.mark.xfail(strict=True, reason="known: bead delta +22 % / +17 % (positions 0/1) with the paper's alpha "
+                   "and the single-material diffuser (zero phase: +16-28 %); -5.3 % / -10.7 % with alpha = "
+                   "0.1+0.05j and zero phase (README, Scan-level findings)")
 def test_glass_bead_delta_within_5_percent(demo_recon):
     dg, _ = delta_beta("soda-lime glass", demo_recon.attrs["energy_eV"])
     d, _ = bead_values(demo_recon, 0)
@@ -206,7 +207,7 @@ def test_glass_bead_delta_within_5_percent(demo_recon):
 
 @pytest.mark.xfail(
     strict=True,
-    reason="known: bead beta 0.6-0.8 of xraydb with the paper's alpha (regularizer damps small absorbers); "
+    reason="known: bead beta 0.7-0.8 of xraydb with the paper's alpha (regularizer damps small absorbers); "
     "within 16 % with alpha = 0.1+0.05j (README, Scan-level findings)",
 )
 def test_glass_bead_beta_within_20_percent(demo_recon):
@@ -245,6 +246,6 @@ def test_pwf_k1_beats_lcs_k12_on_bead_beta(demo_recon, lcs12_recon):
 
 
 @pytest.mark.xfail(strict=True, reason="measured, not the paper's headline: on the demo scene LCS K=12 bead delta "
-                   "is +3.9 %, PWF K=1 +16-28 % (-5.3 % with alpha = 0.1+0.05j; README, Where PWF fails)")
+                   "is +3.9 %, PWF K=1 +22 % (single-material diffuser; -5.3 % with alpha = 0.1+0.05j; README)")
 def test_pwf_k1_beats_lcs_k12_on_bead_delta(demo_recon, lcs12_recon):
     assert bead_errors(demo_recon, 0)[0] < bead_errors(lcs12_recon, 0)[0]
