@@ -160,12 +160,7 @@ def diffuser_transmission(
         ).transmission
     xp = get_array_module(reference)
     fft = fft or FFT.for_module(xp)
-    ref = xp.asarray(reference, dtype=xp.float64)
-    ny, nx = ref.shape
-    shape = shape or (ny + 2 * pad, nx + 2 * pad)
-    if shape != (ny, nx):
-        after = (shape[0] - ny - pad, shape[1] - nx - pad)
-        ref = xp.pad(ref, ((pad, after[0]), (pad, after[1])), mode="reflect")
+    ref, shape = _padded_reference(reference, pad, shape, xp)
     spec = fft.rfft2(ref)
     h = optics.iotf(shape, pixel_size_m, coherence_length_x_m, coherence_length_y_m, xp, np.float64)
     if h is not None:

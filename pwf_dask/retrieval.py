@@ -243,20 +243,20 @@ def retrieve_projection(
         raise ValueError("reference has zero mean intensity")
     kappa = _diffuser_kappa(diffuser_model, diffuser_material, diffuser_beta_over_delta, energy_eV)
     if diffuser is None:
-        t = calibration.diffuser_transmission(
-            ref / scale,
+        t = estimate_diffuser(
+            ref,
+            energy_eV=energy_eV,
             pixel_size_m=pixel_size_m,
-            wavelength=wavelength,
             diffuser_detector_distance_m=diffuser_detector_distance_m,
             coherence_length_x_m=coherence_length_x_m,
             coherence_length_y_m=coherence_length_y_m,
             pad=pad,
-            shape=shape,
-            phase_screen_iter=phase_screen_iter,
             diffuser_model=diffuser_model,
-            beta_over_delta=kappa,
-            refine_iter=diffuser_refine_iter,
-            fft=fft,
+            diffuser_material=diffuser_material,
+            diffuser_beta_over_delta=diffuser_beta_over_delta,
+            diffuser_refine_iter=diffuser_refine_iter,
+            phase_screen_iter=phase_screen_iter,
+            fft_workers=fft.workers,
         )
     else:
         t = xp.asarray(diffuser)
