@@ -61,3 +61,24 @@ def test_two_dose_map_end_to_end(tmp_path):
     md = (tmp_path / "stability_map.md").read_text()
     assert "## dose" in md and "PWF K=1:" in md
     assert (tmp_path / "stability_map.png").stat().st_size > 1000
+
+
+def test_bead_contrast_error_is_local_and_signed():
+    """Zero for the truth plus any offset; a bead 1.2x deeper raises the local contrast (which
+    includes the cylinder's own curvature) by 0.2 of the bead's share of it."""
+    setup = stability.SpeckleSetup(shape=(64, 64), oversample=1, margin_px=4)
+    sim = stability.SpeckleSimulator(setup, seed=0)
+    cyl = Phantom(cylinder_radius_m=15e-6)
+    ph = stability.replace(cyl, spheres=(stability.single_bead(cyl, 6e-6),))
+    bead = stability.bead_regions(sim, ph)
+    inner, ring = bead
+    truth = sim._bin(sim.sample_field(ph)[1].imag)
+    rest = sim._bin(sim.sample_field(cyl)[1].imag)
+    assert inner.sum() > 20 and ring.sum() > inner.sum() and not (inner & ring).any()
+    assert (truth - rest)[inner].min() < 0 and np.all((truth - rest)[ring] == 0)
+    assert stability.bead_contrast_error(truth + 0.7, truth, bead) == pytest.approx(0, abs=1e-12)
+    deeper = rest + 1.2 * (truth - rest)
+    share = (truth - rest)[inner].mean() / (truth[inner].mean() - truth[ring].mean())
+    assert 0.5 < share <= 1
+    assert stability.bead_contrast_error(deeper, truth, bead) == pytest.approx(0.2 * share, rel=1e-9)
+    assert np.isnan(stability.bead_contrast_error(truth, truth, stability.bead_regions(sim, cyl)))

@@ -5,6 +5,7 @@
 #   stability_map.*    ~10 min: where each method fails (one projection, 256 x 256)
 #   bench_iteration_*  ~2 min: PWF iteration time / FFT time (add --device gpu on a GPU)
 #   bench_scan_cpu.*   ~3 min: projections/s/worker on a LocalCluster, full-scan model
+#   bead_contrast.*    ~1 min: the largest bead's phase/attenuation contrast against alpha
 set -euo pipefail
 PWF=${PWF:-.venv/bin/pwf-dask}
 OUT=${OUT:-workflows/results}
@@ -13,7 +14,8 @@ case "${1:-all}" in
   stability) "$PWF" bench stability --out "$OUT" ;;
   iteration) "$PWF" bench iteration --out "$OUT" ;;
   scan) "$PWF" bench scan --out "$OUT" ;;
+  bead) "$(dirname "$PWF")/python" workflows/bead_contrast.py --out "$OUT" ;;
   all)
-    for b in accuracy stability iteration scan; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|stability|iteration|scan|all]" >&2; exit 2 ;;
+    for b in accuracy stability iteration scan bead; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|stability|iteration|scan|bead|all]" >&2; exit 2 ;;
 esac
