@@ -430,6 +430,18 @@ def refractive_index_volume(phantom: Phantom, y_m, v_m, u_m, energy_eV: float, s
     return delta / n, beta / n
 
 
+def scan_phantom(shape: tuple[int, int], pixel_size_m: float, seed: int = 0) -> Phantom:
+    """The phantom :func:`simulate_scan` draws for a frame of ``shape`` and its ``seed``: the
+    cylinder spans 0.8 of the width (times the default fraction), one bead per 12 rows (>= 3)."""
+    ny, nx = shape
+    return default_phantom(
+        0.8 * nx * pixel_size_m,
+        np.random.default_rng(seed + 1000),
+        height_m=ny * pixel_size_m,
+        n_beads=max(3, ny // 12),
+    )
+
+
 PRESETS: dict[str, dict] = {
     # seconds on a laptop: what `pwf-dask demo` reconstructs
     "demo": dict(shape=(48, 128), angles=61, positions=2, photons=1e4),
@@ -482,8 +494,7 @@ def simulate_scan(
         setup = replace(setup, sample_diffuser_distance_m=0.0, diffuser_upstream_m=diffuser_upstream_m)
     p = setup.pixel_size_m
     setup.rotation_axis_offset_m = rotation_axis_offset_px * p
-    rng = np.random.default_rng(seed + 1000)
-    phantom = default_phantom(0.8 * shape[1] * p, rng, height_m=shape[0] * p, n_beads=max(3, shape[0] // 12))
+    phantom = scan_phantom(shape, p, seed)
     angles_deg = np.linspace(0.0, 180.0, n_ang)
     attrs = {
         "energy_eV": setup.energy_eV,

@@ -20,7 +20,7 @@ import numpy as np
 from pwf_dask import calibration, stability
 from pwf_dask.bench import device_name, write_rows_csv
 from pwf_dask.retrieval import estimate_diffuser, retrieve_projection
-from pwf_dask.simulation import SpeckleSetup, SpeckleSimulator, default_phantom
+from pwf_dask.simulation import SpeckleSetup, SpeckleSimulator, scan_phantom
 
 ALPHAS = ["0.02+0.01j", "0.1+0.01j", "0.5+0.01j", "0.1+0.05j"]
 
@@ -36,7 +36,7 @@ def main(argv=None) -> list[dict]:
     setup = SpeckleSetup(shape=shape, photons=1e4)
     p = setup.pixel_size_m
     setup.rotation_axis_offset_m = 2.5 * p
-    phantom = default_phantom(0.8 * shape[1] * p, np.random.default_rng(1000), height_m=shape[0] * p, n_beads=4)
+    phantom = scan_phantom(shape, p, seed=0)  # the demo scan's (simulate_scan, seed 0)
     sim = SpeckleSimulator(setup, seed=0)
     t = sim.diffuser()
     rng = np.random.default_rng(7)
