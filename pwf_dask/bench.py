@@ -283,6 +283,8 @@ ACCURACY_RUNS = [
     ("UMPA K=12 w5", "umpa", 12, dict(tracking_options={"window": 5})),
     ("UMPA K=12 w9", "umpa", 12, dict(tracking_options={"window": 9})),
     ("GF K=1", "gf", 1, {}),
+    ("MIST K=4", "mist", 4, {}),
+    ("MIST K=12", "mist", 12, {}),
 ]
 
 
@@ -374,7 +376,7 @@ def _speed_accuracy_plot(path, rows, pareto) -> None:
     plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    colors = {"pwf": "C0", "lcs": "C1", "umpa": "C2", "gf": "C3"}
+    colors = {"pwf": "C0", "lcs": "C1", "umpa": "C2", "gf": "C3", "mist": "C4"}
     for i, r in enumerate(rows):
         ax.scatter(
             r["wall_s"],

@@ -106,6 +106,8 @@ def _retrieval_kwargs(args) -> dict:
         phase_scale=args.phase_scale,
         diffuser_model=args.diffuser_model,
         diffuser_material=args.diffuser_material,
+        sample_material=args.sample_material,
+        sample_delta_over_beta=args.sample_delta_over_beta,
     )
 
 
@@ -190,7 +192,7 @@ def _compute_options(p: argparse.ArgumentParser) -> None:
 def _retrieval_options(p: argparse.ArgumentParser) -> None:
     from .solver import DEFAULT_ALPHA, PAPER_TOL
 
-    p.add_argument("--method", default="pwf", choices=["pwf", "lcs", "umpa", "gf"])
+    p.add_argument("--method", default="pwf", choices=["pwf", "lcs", "umpa", "gf", "mist"])
     p.add_argument("--max-iter", type=int, default=2000)
     p.add_argument("--tol", type=float, default=PAPER_TOL, help="1 - field correlation of successive iterates")
     p.add_argument("--gamma", type=float, default=1.0)
@@ -215,6 +217,14 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
         "--diffuser-material",
         default="silicon carbide",
         help="the diffuser's material, for its beta/delta (xraydb): silicon carbide, alumina, ...",
+    )
+    p.add_argument(
+        "--sample-material",
+        default="cellulose",
+        help="mist only: the sample's one material, for its delta/beta (xraydb)",
+    )
+    p.add_argument(
+        "--sample-delta-over-beta", type=float, help="mist only: the sample's delta/beta (overrides --sample-material)"
     )
 
 

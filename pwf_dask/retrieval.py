@@ -16,7 +16,7 @@ from . import calibration, optics, solver
 from .backend import FFT, get_array_module, to_numpy
 from .materials import delta_beta
 
-METHODS = ("pwf", "umpa", "lcs", "gf")
+METHODS = ("pwf", "umpa", "lcs", "gf", "mist")
 
 
 @dataclass
@@ -125,6 +125,14 @@ def estimate_diffuser(
     )
 
 
+def mist_delta_over_beta(material: str, delta_over_beta: float | None, energy_eV: float) -> float:
+    """The one delta/beta MIST assumes: the given value, else the material's at the energy."""
+    if delta_over_beta is not None:
+        return float(delta_over_beta)
+    delta, beta = delta_beta(material, energy_eV)
+    return delta / beta
+
+
 def _diffuser_kappa(model: str, material: str, beta_over_delta: float | None, energy_eV: float) -> float | None:
     if model != "single-material":
         return None
@@ -173,6 +181,8 @@ def retrieve_projection(
     phase_scale: float | str = 1.0,
     fft_workers: int | None = None,
     tracking_options: dict | None = None,
+    sample_material: str = "cellulose",
+    sample_delta_over_beta: float | None = None,
 ) -> RetrievalResult:
     """Retrieve phase and attenuation from one flat/dark-corrected speckle image (CONTRACT §4).
 
@@ -206,6 +216,11 @@ def retrieve_projection(
             background_mask=background_mask,
             zero_background=zero_background,
             **(tracking_options or {}),
+            **(
+                {"delta_over_beta": mist_delta_over_beta(sample_material, sample_delta_over_beta, energy_eV)}
+                if method == "mist"
+                else {}
+            ),
         )
     xp = get_array_module(sample, reference)
     y = _check_image("sample", sample, xp)
@@ -364,11 +379,12 @@ def retrieve_tracking(
     zero_background: bool = True,
     **options,
 ) -> RetrievalResult:
-    """The speckle-tracking baselines (``umpa``, ``lcs``, ``gf``) behind the same interface.
+    """The speckle-tracking baselines (``umpa``, ``lcs``, ``gf``, ``mist``) behind the same
+    interface.
 
     ``sample`` and ``reference`` are (y, x) or (K, y, x) stacks of K diffuser positions (LCS
-    needs K >= 3); the results are (y, x). ``options`` go to the method (e.g. ``window``,
-    ``max_shift`` for UMPA).
+    needs K >= 3, MIST K >= 4); the results are (y, x). ``options`` go to the method (e.g.
+    ``window``, ``max_shift`` for UMPA, ``delta_over_beta`` for MIST).
     """
     from . import tracking
 
@@ -385,7 +401,7 @@ def retrieve_tracking(
     scale = float(xp.mean(r))
     s, r = s / scale, r / scale
     fresnel = optics.wavelength_m(energy_eV) * diffuser_detector_distance_m / pixel_size_m**2
-    fn = {"umpa": tracking.umpa, "lcs": tracking.lcs, "gf": tracking.geometric_flow}[method]
+    fn = {"umpa": tracking.umpa, "lcs": tracking.lcs, "gf": tracking.geometric_flow, "mist": tracking.mist}[method]
     out = fn(s, r, fresnel=fresnel, **options)
     phase = to_numpy(out.phase).astype(np.float64)
     attenuation = to_numpy(out.attenuation).astype(np.float64)

@@ -573,6 +573,7 @@ def pwf(
             eta *= 0.5
             backtracks += 1
             short = 0
+
     # J is summed in float64 from residuals rounded to the working precision: a rise
     # smaller than that rounding is noise, not a failed step
     rise_tol = 1e-5 if model.rdtype == np.float32 else 1e-11

@@ -69,6 +69,7 @@ METHOD_RUNS: list[tuple[str, str, int, dict]] = [
     ("UMPA K=12 w5", "umpa", 12, dict(tracking_options={"window": 5})),
     ("UMPA K=1 w7", "umpa", 1, {}),
     ("GF K=1", "gf", 1, {}),
+    ("MIST K=12", "mist", 12, {}),
 ]
 
 
@@ -410,8 +411,7 @@ def write_stability_map(rows: list[dict], out_dir: str | Path, device: str) -> N
         "`pwf-dask bench stability`: one projection of the paper's optics (10 keV, 0.65 um pixels, L1 = 3 mm,",
         "L2 = 20 mm, sub-pixel SiC sandpaper, cellulose rod with glass beads, 1e4 ph/px) varied along one axis at",
         "a time. Entry: phase RMSE inside the sample / RMS true phase (background zeroed on the true sample-free",
-        f"pixels for every method). A method holds while this is below {PHASE_ERROR_THRESHOLD}; "
-        "**bold** = fails.",
+        f"pixels for every method). A method holds while this is below {PHASE_ERROR_THRESHOLD}; **bold** = fails.",
         "In brackets: the largest bead's local phase contrast error (+ = overshoot), which the sample-wide RMSE",
         "hides; the tomogram's bead delta inherits it.",
         "Columns `phase` and `d/grain`: the largest true phase (pi) and the 99th-percentile speckle displacement",

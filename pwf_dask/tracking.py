@@ -1,6 +1,6 @@
-"""Speckle-tracking baselines: UMPA, LCS and GF, beside PWF (Table S1 of the paper).
+"""Speckle-tracking baselines: UMPA, LCS, GF and MIST, beside PWF (Table S1 of the paper).
 
-All three return phase (Im psi, rad, negative for matter) and attenuation (-Re psi), like PWF,
+All four return phase (Im psi, rad, negative for matter) and attenuation (-Re psi), like PWF,
 so the tomography and FSC stages take them unchanged. Geometry: the sample sits L1 upstream
 of the diffuser, so a phase gradient tilts the beam onto the diffuser and, by the memory
 effect, displaces the speckle by d = lambda L2 grad(phi) / (2 pi) at the detector (L1 only
@@ -15,6 +15,10 @@ F = lambda L2 / p^2.
 * :func:`geometric_flow` - Paganin et al. 2018: one image, no attenuation; the linearised flow
   I_S = I_R - (lambda L2 / 2 pi) div(I_R grad phi), solved by conjugate gradients with an
   inverse-Laplacian preconditioner.
+* :func:`mist` - multimodal intrinsic speckle tracking (Pavlov 2020, Alloo 2023) for a single
+  material: per-pixel least squares over K >= 4 positions of the evolving Fokker-Planck
+  equation (attenuation, phase flow and diffusive dark field), then one Fourier inversion
+  that ties attenuation to phase by the sample's delta/beta.
 * :func:`integrate_gradient` - Frankot-Chellappa Fourier integration of the displacement field.
 """
 
@@ -38,6 +42,7 @@ class TrackingResult:
     dx: Any
     dy: Any
     residual: Any
+    dark_field: Any = None  # MIST's b = F D I_ob, the coefficient of lap R_k (pixels^2)
 
 
 def _box(a, size: int, xp):
@@ -48,6 +53,13 @@ def _box(a, size: int, xp):
     return c[size:, size:] - c[:-size, size:] - c[size:, :-size] + c[:-size, :-size]
 
 
+def _mirror(a, sign_x: int = 1, sign_y: int = 1, xp=np):
+    """Even (sign +1) or odd (-1) extension to 2x size along each axis: the periodic
+    extension of the result has no jump at the frame edges."""
+    e = xp.concatenate([a, sign_x * a[:, ::-1]], axis=1)
+    return xp.concatenate([e, sign_y * e[::-1, :]], axis=0)
+
+
 def integrate_gradient(gx, gy, fft: FFT | None = None):
     """Frankot-Chellappa: the periodic surface whose gradient (per pixel) best fits (gx, gy).
 
@@ -55,10 +67,8 @@ def integrate_gradient(gx, gy, fft: FFT | None = None):
     xp = get_array_module(gx)
     fft = fft or FFT.for_module(xp)
     ny, nx = gx.shape
-    ex = xp.concatenate([gx, -gx[:, ::-1]], axis=1)
-    ex = xp.concatenate([ex, ex[::-1, :]], axis=0)
-    ey = xp.concatenate([gy, gy[:, ::-1]], axis=1)
-    ey = xp.concatenate([ey, -ey[::-1, :]], axis=0)
+    ex = _mirror(gx, -1, 1, xp)
+    ey = _mirror(gy, 1, -1, xp)
     v = xp.asarray(np.fft.fftfreq(2 * ny)[:, None])
     u = xp.asarray(np.fft.fftfreq(2 * nx)[None, :])
     q2 = u * u + v * v
@@ -120,31 +130,105 @@ def umpa(sample, reference, *, fresnel: float, window: int = 7, max_shift: int =
     return TrackingResult(phase, attenuation, dx, dy, residual)
 
 
+def _pixel_least_squares(basis, i_img, regularization: float, xp):
+    """Per pixel, the coefficients x minimising sum_k (I_k - sum_j x_j basis_kj)^2 plus a
+    Tikhonov term scaled to the pixel's normal matrix; ``basis``: (K, J, y, x). Returns the
+    (y, x, J) coefficients and the RMS residual over the K images."""
+    n = basis.shape[1]
+    ata = xp.einsum("kiyx,kjyx->yxij", basis, basis)
+    atb = xp.einsum("kiyx,kyx->yxi", basis, i_img)
+    scale = xp.trace(ata, axis1=-2, axis2=-1)[..., None, None] / n
+    ata = ata + regularization * scale * xp.eye(n)
+    sol = xp.linalg.solve(ata, atb[..., None])[..., 0]
+    model = xp.einsum("kiyx,yxi->kyx", basis, sol)
+    return sol, xp.sqrt(xp.mean((i_img - model) ** 2, axis=0))
+
+
+def _stacks(sample, reference, xp, method: str, min_positions: int):
+    i_img = xp.asarray(sample, dtype=xp.float64)
+    r_img = xp.asarray(reference, dtype=xp.float64)
+    if i_img.ndim != 3 or i_img.shape[0] < min_positions:
+        raise ValueError(
+            f"{method} needs K >= {min_positions} diffuser positions: sample and reference of shape (K, y, x)"
+        )
+    return i_img, r_img
+
+
 def lcs(sample, reference, *, fresnel: float, regularization: float = 1e-6):
     """LCS (Quenot 2021): per pixel, least squares over K >= 3 positions of
     I_k = a R_k + b dR_k/dx + c dR_k/dy, with a = T, (b, c) = -T d. Returns a
     :class:`TrackingResult`."""
     xp = get_array_module(sample, reference)
-    i_img = xp.asarray(sample, dtype=xp.float64)
-    r_img = xp.asarray(reference, dtype=xp.float64)
-    if i_img.ndim != 3 or i_img.shape[0] < 3:
-        raise ValueError("LCS needs K >= 3 diffuser positions: sample and reference of shape (K, y, x)")
+    i_img, r_img = _stacks(sample, reference, xp, "LCS", 3)
     gy, gx = xp.gradient(r_img, axis=(1, 2))
-    basis = xp.stack([r_img, gx, gy], axis=1)  # (K, 3, y, x)
-    ata = xp.einsum("kiyx,kjyx->yxij", basis, basis)
-    atb = xp.einsum("kiyx,kyx->yxi", basis, i_img)
-    scale = xp.trace(ata, axis1=-2, axis2=-1)[..., None, None] / 3
-    ata = ata + regularization * scale * xp.eye(3)
-    sol = xp.linalg.solve(ata, atb[..., None])[..., 0]
+    sol, residual = _pixel_least_squares(xp.stack([r_img, gx, gy], axis=1), i_img, regularization, xp)
     t = sol[..., 0]
     tsafe = xp.where(xp.abs(t) > 1e-6, t, 1e-6)
     dx = -sol[..., 1] / tsafe
     dy = -sol[..., 2] / tsafe
     phase = _phase_from_displacement(dx, dy, fresnel)
     attenuation = -0.5 * xp.log(xp.clip(t, 1e-6, None))
-    model = xp.einsum("kiyx,yxi->kyx", basis, sol)
-    residual = xp.sqrt(xp.mean((i_img - model) ** 2, axis=0))
     return TrackingResult(phase, attenuation, dx, dy, residual)
+
+
+def _laplacian(a, xp):
+    """Five-point Laplacian (per pixel^2) of each image of a (K, y, x) stack, edges reflected."""
+    p = xp.pad(a, ((0, 0), (1, 1), (1, 1)), mode="reflect")
+    return p[:, :-2, 1:-1] + p[:, 2:, 1:-1] + p[:, 1:-1, :-2] + p[:, 1:-1, 2:] - 4 * a
+
+
+def mist(sample, reference, *, fresnel: float, delta_over_beta: float, regularization: float = 1e-6):
+    """MIST for a single-material sample (Pavlov et al. 2020; Alloo et al. 2023). Returns a
+    :class:`TrackingResult` with the dark-field coefficient in ``dark_field``.
+
+    The evolving Fokker-Planck equation with the sample's transmission I_ob and an effective
+    diffusion D (the dark field), pixel units, F = lambda L2 / p^2,
+
+        I_k = I_ob R_k - (F / 2 pi) div(R_k I_ob grad phi) + F lap(D I_ob R_k),
+
+    becomes, for one material (I_ob grad phi = (g / 2) grad I_ob, g = delta/beta, so the
+    phase is phi = (g / 2) ln I_ob) and with G = F g / (4 pi), b = F D I_ob,
+
+        I_k = a R_k + b lap R_k + c . grad R_k,
+        a = I_ob - G lap I_ob + lap b,   c = 2 grad b - G grad I_ob.
+
+    Per pixel, (a, b, c) are fitted in least squares over the K >= 4 positions; then
+    a - lap b = (1 - G lap) I_ob and c - 2 grad b = -G grad I_ob are solved together for I_ob
+    in Fourier space (least squares over both, mirror-extended; the discrete symbols of the
+    operators used in the fit). The c equation carries the speckle displacement, the a
+    equation the attenuation and intrinsic (propagation) contrast. The attenuation is
+    -ln(I_ob) / 2 and the phase -g times it: a second material (glass beads in cellulose)
+    gets the right phase where the displacement dominates but an attenuation off by the ratio
+    of the two delta/beta, the coupling the paper notes (Table S1).
+    """
+    xp = get_array_module(sample, reference)
+    fft = FFT.for_module(xp)
+    i_img, r_img = _stacks(sample, reference, xp, "MIST", 4)
+    if not delta_over_beta > 0:
+        raise ValueError(f"MIST needs the sample's delta/beta > 0, got {delta_over_beta}")
+    gy, gx = xp.gradient(r_img, axis=(1, 2))
+    basis = xp.stack([r_img, _laplacian(r_img, xp), gx, gy], axis=1)
+    sol, residual = _pixel_least_squares(basis, i_img, regularization, xp)
+    a, b, cx, cy = (sol[..., j] for j in range(4))
+    ny, nx = a.shape
+    v = xp.asarray(np.fft.fftfreq(2 * ny)[:, None])
+    u = xp.asarray(np.fft.fftfreq(2 * nx)[None, :])
+    minus_lap = (2 - 2 * xp.cos(2 * np.pi * u)) + (2 - 2 * xp.cos(2 * np.pi * v))
+    grad_x, grad_y = 1j * xp.sin(2 * np.pi * u), 1j * xp.sin(2 * np.pi * v)  # central differences
+    g = fresnel * delta_over_beta / (4 * np.pi)
+    b_hat = fft.fft2(_mirror(b, 1, 1, xp))
+    a_eq = fft.fft2(_mirror(a, 1, 1, xp)) + minus_lap * b_hat  # = (1 + G |q|^2) I_ob
+    cx_eq = fft.fft2(_mirror(cx, -1, 1, xp)) - 2 * grad_x * b_hat  # = -G grad_x I_ob
+    cy_eq = fft.fft2(_mirror(cy, 1, -1, xp)) - 2 * grad_y * b_hat
+    paganin = 1 + g * minus_lap
+    numerator = paganin * a_eq - g * (xp.conj(grad_x) * cx_eq + xp.conj(grad_y) * cy_eq)
+    denominator = paganin**2 + g * g * (xp.abs(grad_x) ** 2 + xp.abs(grad_y) ** 2)
+    i_ob = fft.ifft2(numerator / denominator).real[:ny, :nx]
+    attenuation = -0.5 * xp.log(xp.clip(i_ob, 1e-6, None))
+    phase = -delta_over_beta * attenuation
+    pgy, pgx = xp.gradient(phase)
+    d = fresnel / (2 * np.pi)
+    return TrackingResult(phase, attenuation, d * pgx, d * pgy, residual, dark_field=b)
 
 
 def geometric_flow(sample, reference, *, fresnel: float, iterations: int = 200, tol: float = 1e-6):

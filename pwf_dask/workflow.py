@@ -25,7 +25,9 @@ from .retrieval import METHODS
 from .solver import DEFAULT_ALPHA, PAPER_TOL
 
 #: methods that combine the K diffuser positions of one angle into one projection
-MULTI_IMAGE = ("lcs", "umpa")
+MULTI_IMAGE = ("lcs", "umpa", "mist")
+#: the fewest diffuser positions each method needs
+MIN_POSITIONS = {"lcs": 3, "mist": 4}
 
 
 def _read_corrected(g, name, index, flat, dark, corrected):
@@ -160,8 +162,10 @@ def retrieve_scan(
     resolve_device(device)  # fail early on --device gpu without CuPy
     alpha_c = complex(str(alpha).replace(" ", "")) if not isinstance(alpha, complex) else alpha
     ds, info = scan_io.open_scan(scan_path)
-    if method == "lcs" and info.n_positions < 3:
-        raise ValueError(f"method lcs needs K >= 3 diffuser positions; the scan has {info.n_positions}")
+    if info.n_positions < MIN_POSITIONS.get(method, 1):
+        raise ValueError(
+            f"method {method} needs K >= {MIN_POSITIONS[method]} diffuser positions; the scan has {info.n_positions}"
+        )
     g, flat, dark, corrected = _scan_frames(scan_path)
     coherence = []
     for p in range(info.n_positions if method == "pwf" else 0):
@@ -194,8 +198,18 @@ def retrieve_scan(
         "coherence_calibrated": info.coherence_length_x_m is None or info.coherence_length_y_m is None,
         "pwf_dask_version": __version__,
         "diffuser_model": options.get("diffuser_model", "single-material") if method == "pwf" else "n/a",
-        **{k: v for k, v in options.items() if isinstance(v, (int, float, str, bool))},
+        **{
+            k: v
+            for k, v in options.items()
+            if isinstance(v, (int, float, str, bool)) and (method == "mist" or not k.startswith("sample_"))
+        },
     }
+    if method == "mist":  # the one material MIST assumes, as used
+        from .retrieval import mist_delta_over_beta
+
+        params["sample_delta_over_beta"] = mist_delta_over_beta(
+            options.get("sample_material", "cellulose"), options.get("sample_delta_over_beta"), info.energy_eV
+        )
     grp = scan_io.create_reconstruction(recon_path, info, params)
     done = grp["iterations"][...]
     todo = [(int(p), int(a)) for p, a in zip(*np.nonzero(done < 0))]

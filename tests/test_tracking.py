@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from pwf_dask import background, optics, retrieve_projection, tracking
+from pwf_dask.materials import delta_beta
 from pwf_dask.simulation import Phantom, SpeckleSetup, SpeckleSimulator, Sphere
 
 FRESNEL = optics.wavelength_m(1e4) * 0.02 / (0.65e-6) ** 2
@@ -37,12 +38,35 @@ def gain(phase, truth):
 
 
 @pytest.mark.parametrize("method,k,lo,hi", [("umpa", 1, 0.85, 1.1), ("umpa", 6, 0.85, 1.1), ("lcs", 6, 0.9, 1.1),
-                                            ("gf", 1, 0.9, 1.2)])
+                                            ("gf", 1, 0.9, 1.2), ("mist", 4, 0.9, 1.1), ("mist", 6, 0.9, 1.1)])
 def test_baseline_recovers_weak_lens(scenes, method, k, lo, hi):
     s, r, truth = scenes["lens"]
-    fn = {"umpa": tracking.umpa, "lcs": tracking.lcs, "gf": tracking.geometric_flow}[method]
-    out = fn(s[:k] if k > 1 else s[0], r[:k] if k > 1 else r[0], fresnel=FRESNEL)
+    fn = {"umpa": tracking.umpa, "lcs": tracking.lcs, "gf": tracking.geometric_flow, "mist": tracking.mist}[method]
+    # a pure phase object is MIST's single material in the limit delta/beta -> infinity
+    opts = {"delta_over_beta": 1e5} if method == "mist" else {}
+    out = fn(s[:k] if k > 1 else s[0], r[:k] if k > 1 else r[0], fresnel=FRESNEL, **opts)
     assert lo <= gain(out.phase, truth) <= hi
+
+
+def test_mist_ties_attenuation_to_phase_by_delta_over_beta(scenes):
+    """On a single-material bead (PMMA) MIST recovers phase and attenuation with the true
+    delta/beta; told a delta/beta 5x too large, the phase (carried by the speckle
+    displacement) holds but the attenuation comes out 5x too weak: the coupling of Table S1."""
+    s, r, truth = scenes["bead"]
+    delta, beta = delta_beta("PMMA", 1e4)
+    inside = truth < -0.3
+    true_attenuation = -truth * beta / delta
+
+    def attenuation_gain(att):
+        att = background.zero_background(np.asarray(att, np.float64), truth > -0.01)
+        return float(np.polyfit(true_attenuation[inside], att[inside], 1)[0])
+
+    right = tracking.mist(s, r, fresnel=FRESNEL, delta_over_beta=delta / beta)
+    wrong = tracking.mist(s, r, fresnel=FRESNEL, delta_over_beta=5 * delta / beta)
+    assert 0.9 < gain(right.phase, truth) < 1.1 and 0.9 < attenuation_gain(right.attenuation) < 1.1
+    assert 0.9 < gain(wrong.phase, truth) < 1.1 and attenuation_gain(wrong.attenuation) < 0.3
+    with pytest.raises(ValueError, match="K >= 4"):
+        tracking.mist(s[:3], r[:3], fresnel=FRESNEL, delta_over_beta=delta / beta)
 
 
 def test_displacement_sign_follows_phase_gradient(scenes):
@@ -76,6 +100,8 @@ def test_retrieve_projection_dispatches_baselines(scenes):
               diffuser_detector_distance_m=0.02, background_mask=truth > -0.01)
     res = retrieve_projection(s, r, method="lcs", **kw)
     assert res.phase.shape == truth.shape and res.residual_rmse > 0
+    assert 0.9 < gain(res.phase, truth) < 1.1
+    res = retrieve_projection(s, r, method="mist", sample_delta_over_beta=1e5, **kw)
     assert 0.9 < gain(res.phase, truth) < 1.1
     with pytest.raises(ValueError, match="must be equal"):
         retrieve_projection(s, r[:2], method="umpa", **kw)

@@ -160,6 +160,22 @@ def test_simulate_with_the_diffuser_upstream_records_l1_zero(tmp_path):
     assert scan_io.open_scan(scan) is not None  # a valid CONTRACT §1 scan
 
 
+def test_mist_scan_combines_four_positions_and_records_its_material(tiny_scan, tmp_path, capsys):
+    assert cli.main(["retrieve", str(tiny_scan), str(tmp_path / "no.zarr"), "--method", "mist"]) != 0
+    assert "mist needs K >= 4" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert not (tmp_path / "no.zarr").exists()
+    scan, recon = tmp_path / "k4.zarr", tmp_path / "mist.zarr"
+    simulate_scan(scan, preset="demo", shape=(32, 64), angles=5, positions=4, seed=3, progress=False)
+    argv = ["run", str(scan), str(recon), "--method", "mist", "--sample-material", "PMMA"]
+    assert cli.main(argv) == 0
+    ds = xr.open_zarr(recon)
+    assert ds.sizes["position"] == 1 and ds.attrs["method"] == "mist"
+    delta, beta = delta_beta("PMMA", ds.attrs["energy_eV"])
+    assert ds.attrs["sample_material"] == "PMMA"
+    assert ds.attrs["sample_delta_over_beta"] == pytest.approx(delta / beta)
+    assert np.isfinite(ds["delta"].values).all()
+
+
 def test_stages_in_wrong_order_are_refused(tmp_path, capsys):
     assert cli.main(["tomo", str(tmp_path / "none.zarr")]) != 0
     assert "no such reconstruction" in capsys.readouterr().err
