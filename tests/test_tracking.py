@@ -112,3 +112,15 @@ def test_pareto_front_of_time_and_error():
 
     pts = [(1.0, 0.5), (2.0, 0.2), (3.0, 0.3), (0.5, 0.9), (2.0, 0.2)]
     assert _pareto(pts) == {0, 1, 3, 4}
+
+
+@pytest.mark.parametrize("method,k", [("umpa", 6), ("lcs", 6), ("gf", 1), ("mist", 6)])
+def test_baselines_on_cupy_match_numpy(cupy, scenes, method, k):
+    s, r, truth = scenes["lens"]
+    fn = {"umpa": tracking.umpa, "lcs": tracking.lcs, "gf": tracking.geometric_flow, "mist": tracking.mist}[method]
+    opts = {"delta_over_beta": 1e5} if method == "mist" else {}
+    cpu = fn(s[:k], r[:k], fresnel=FRESNEL, **opts)
+    gpu = fn(cupy.asarray(s[:k]), cupy.asarray(r[:k]), fresnel=FRESNEL, **opts)
+    assert isinstance(gpu.phase, cupy.ndarray)
+    scale = float(np.abs(cpu.phase).max())
+    np.testing.assert_allclose(cupy.asnumpy(gpu.phase), cpu.phase, atol=1e-4 * scale)
