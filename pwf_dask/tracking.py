@@ -144,13 +144,16 @@ def _pixel_least_squares(basis, i_img, regularization: float, xp):
     return sol, xp.sqrt(xp.mean((i_img - model) ** 2, axis=0))
 
 
-def _stacks(sample, reference, xp, method: str, min_positions: int):
+#: the fewest diffuser positions a method's per-pixel least squares needs (unknowns per pixel)
+MIN_POSITIONS = {"lcs": 3, "mist": 4}
+
+
+def _stacks(sample, reference, xp, method: str):
     i_img = xp.asarray(sample, dtype=xp.float64)
     r_img = xp.asarray(reference, dtype=xp.float64)
-    if i_img.ndim != 3 or i_img.shape[0] < min_positions:
-        raise ValueError(
-            f"{method} needs K >= {min_positions} diffuser positions: sample and reference of shape (K, y, x)"
-        )
+    k = MIN_POSITIONS[method]
+    if i_img.ndim != 3 or i_img.shape[0] < k:
+        raise ValueError(f"{method.upper()} needs K >= {k} diffuser positions: sample and reference of shape (K, y, x)")
     return i_img, r_img
 
 
@@ -159,7 +162,7 @@ def lcs(sample, reference, *, fresnel: float, regularization: float = 1e-6):
     I_k = a R_k + b dR_k/dx + c dR_k/dy, with a = T, (b, c) = -T d. Returns a
     :class:`TrackingResult`."""
     xp = get_array_module(sample, reference)
-    i_img, r_img = _stacks(sample, reference, xp, "LCS", 3)
+    i_img, r_img = _stacks(sample, reference, xp, "lcs")
     gy, gx = xp.gradient(r_img, axis=(1, 2))
     sol, residual = _pixel_least_squares(xp.stack([r_img, gx, gy], axis=1), i_img, regularization, xp)
     t = sol[..., 0]
@@ -203,7 +206,7 @@ def mist(sample, reference, *, fresnel: float, delta_over_beta: float, regulariz
     """
     xp = get_array_module(sample, reference)
     fft = FFT.for_module(xp)
-    i_img, r_img = _stacks(sample, reference, xp, "MIST", 4)
+    i_img, r_img = _stacks(sample, reference, xp, "mist")
     if not delta_over_beta > 0:
         raise ValueError(f"MIST needs the sample's delta/beta > 0, got {delta_over_beta}")
     gy, gx = xp.gradient(r_img, axis=(1, 2))

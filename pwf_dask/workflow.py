@@ -23,11 +23,10 @@ from .cluster import Runner, worker_fft_threads
 from .optics import wavelength_m
 from .retrieval import METHODS
 from .solver import DEFAULT_ALPHA, PAPER_TOL
+from .tracking import MIN_POSITIONS
 
 #: methods that combine the K diffuser positions of one angle into one projection
 MULTI_IMAGE = ("lcs", "umpa", "mist")
-#: the fewest diffuser positions each method needs
-MIN_POSITIONS = {"lcs": 3, "mist": 4}
 
 
 def _read_corrected(g, name, index, flat, dark, corrected):
