@@ -104,6 +104,7 @@ def _retrieval_kwargs(args) -> dict:
         gamma=args.gamma,
         alpha=args.alpha,
         phase_scale=args.phase_scale,
+        field_upsample=args.field_upsample if args.field_upsample == "auto" else int(args.field_upsample),
         diffuser_model=args.diffuser_model,
         diffuser_material=args.diffuser_material,
         sample_material=args.sample_material,
@@ -206,6 +207,13 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
         type=float,
         default=1.0,
         help="metric scale kappa of the phase block: faster phase convergence, same solution",
+    )
+    p.add_argument(
+        "--field-upsample",
+        default="auto",
+        choices=["auto", "1", "2", "3"],
+        help="sample field and propagation on a finer grid: auto (when the phase gradient exceeds pi/2 per "
+        "pixel, thick samples), 1 (the paper's detector grid), 2, 3",
     )
     p.add_argument(
         "--diffuser-model",

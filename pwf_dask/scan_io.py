@@ -233,6 +233,7 @@ RECON_KEYS = (
     "coherence_length_y_m",
     "precision",
     "upsample",
+    "field_upsample",
     "pad",
     "normalization",
     "preconditioner",

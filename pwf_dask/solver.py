@@ -63,6 +63,9 @@ class PWFModel:
     Build with :func:`build_model`. ``shape`` is the computational grid (the detector
     frame plus ``pad`` pixels each side, rounded to a fast FFT length); ``upsample`` > 1
     forms |v|^2 on a grid that many times finer, so the squared modulus is not aliased.
+    ``field_upsample`` s > 1 carries the whole optical chain, exp(psi), P1, t and P2, on an
+    s-times finer grid (psi and t band-limited-interpolated), so that phase gradients up to
+    s pi rad per detector pixel displace the speckle the right way (see :func:`build_model`).
     """
 
     xp: ModuleType
@@ -88,6 +91,7 @@ class PWFModel:
     rdtype: Any
     cdtype: Any
     info: dict = field(default_factory=dict)
+    field_upsample: int = 1
 
 
 def _half_weights(shape, xp, dtype):
@@ -145,6 +149,7 @@ def build_model(
     precision: str = "single",
     normalization: str = "paper",
     phase_scale: float | str = 1.0,
+    field_upsample: int = 1,
     fft: FFT | None = None,
 ) -> PWFModel:
     """Precompute the kernels, filters and normalisation of Algorithm S1 for one geometry.
@@ -152,6 +157,15 @@ def build_model(
     ``t`` is the diffuser transmission on the computational grid (see
     :func:`pwf_dask.calibration.diffuser_transmission`); its shape fixes the grid, and the
     detector frame of ``frame_shape`` sits ``pad`` pixels from its top-left corner.
+
+    ``field_upsample`` s > 1: the unknown psi stays on the detector grid, but the forward
+    model evaluates exp(U psi), with U the band-limited (spectral zero-padding) interpolation
+    to an s-times finer grid, and propagates on that grid with U t. On the detector grid a
+    phase gradient g > pi rad/pixel aliases to g - 2 pi: exp(psi) then tilts the wave the
+    wrong way and the speckle is displaced backwards (the thick-sample failure, README). The
+    interpolated unwrapped phase keeps the tilt. The intensity is band-limited back to the
+    detector grid as with ``upsample``. Costs about s^2 times the FFT work; s = 1 is the
+    paper's model, unchanged.
     """
     from .backend import get_array_module
 
@@ -167,10 +181,20 @@ def build_model(
         mask_h[frame] = 1
         mask = xp.asarray(mask_h)
     t = t.astype(cdt, copy=False)
+    field_upsample = int(field_upsample)
+    if field_upsample < 1:
+        raise ValueError(f"field_upsample must be >= 1, got {field_upsample}")
+    tmax = float(xp.max(t.real**2 + t.imag**2)) or 1.0
+    field_shape, field_pixel_m = shape, pixel_size_m
+    if field_upsample > 1:
+        field_shape = (shape[0] * field_upsample, shape[1] * field_upsample)
+        field_pixel_m = pixel_size_m / field_upsample
+        t = interpolate_field(t, field_shape, fft).astype(cdt, copy=False)
+        upsample = 1  # |v|^2 is formed on the fine grid already
     k1 = None
     if sample_diffuser_distance_m != 0:
-        k1 = optics.angular_spectrum_kernel(shape, pixel_size_m, wavelength, sample_diffuser_distance_m, xp, cdt)
-    k2 = optics.angular_spectrum_kernel(shape, pixel_size_m, wavelength, diffuser_detector_distance_m, xp, cdt)
+        k1 = optics.angular_spectrum_kernel(field_shape, field_pixel_m, wavelength, sample_diffuser_distance_m, xp, cdt)
+    k2 = optics.angular_spectrum_kernel(field_shape, field_pixel_m, wavelength, diffuser_detector_distance_m, xp, cdt)
     otf = optics.iotf(shape, pixel_size_m, coherence_length_x_m, coherence_length_y_m, xp, rdt)
     if pixel_integration:
         pix = optics.pixel_transfer_function(shape, pixel_size_m, pixel_size_m, xp, rdt)
@@ -185,7 +209,6 @@ def build_model(
     reg_phase = None
     if reg is not None:
         reg_phase = reg * optics.laplacian_symbol(shape, xp, rdt) if use_preconditioner else reg
-    tmax = float(xp.max(t.real**2 + t.imag**2)) or 1.0
     if normalization == "paper":
         norm = tmax
     elif normalization == "released":
@@ -220,6 +243,7 @@ def build_model(
         rdtype=rdt,
         cdtype=cdt,
         info={"pad": pad, "pixel_integration": pixel_integration, "gamma": gamma},
+        field_upsample=field_upsample,
     )
 
 
@@ -272,6 +296,20 @@ def _crop_spectrum(a, coarse_shape, half: bool):
     return out
 
 
+def interpolate_field(a, fine_shape, fft: FFT):
+    """U a: band-limited interpolation of a complex image onto a finer grid (spectral zero
+    padding, Nyquist left out); U^H is :func:`restrict_field`."""
+    s2 = (fine_shape[0] * fine_shape[1]) / (a.shape[0] * a.shape[1])
+    out = fft.ifft2(_pad_spectrum(fft.fft2(a), fine_shape, half=False))
+    out *= s2
+    return out
+
+
+def restrict_field(a, coarse_shape, fft: FFT):
+    """U^H a, the adjoint of :func:`interpolate_field` (spectral cropping)."""
+    return fft.ifft2(_crop_spectrum(fft.fft2(a), coarse_shape, half=False))
+
+
 # --- Algorithm S2 -----------------------------------------------------------------------
 
 
@@ -294,6 +332,19 @@ def physical_model(psi, model: PWFModel) -> Evaluation:
     band-limited back, which equals the exact |v|^2 filtered by the IOTF (no aliasing).
     """
     fft = model.fft
+    if model.field_upsample > 1:
+        fine = (model.shape[0] * model.field_upsample, model.shape[1] * model.field_upsample)
+        x = complex_exp(interpolate_field(psi, fine, fft))
+        a = x if model.kernel1 is None else fft.ifft2(fft.fft2(x) * model.kernel1)
+        spec = fft.fft2(model.t * a)
+        spec *= model.kernel2
+        v = fft.ifft2(spec)
+        spec_i = _crop_spectrum(fft.rfft2(abs2(v)), model.shape, half=True)
+        if model.otf is not None:
+            spec_i *= model.otf
+        f = fft.irfft2(spec_i, s=model.shape)
+        f *= 1.0 / model.field_upsample**2
+        return Evaluation(x=x, v=v, f=f.astype(model.rdtype, copy=False), r=None, loss=math.nan)
     x = complex_exp(psi)
     a = x if model.kernel1 is None else fft.ifft2(fft.fft2(x) * model.kernel1)
     spec = fft.fft2(model.t * a)
@@ -332,7 +383,7 @@ def wirtinger_derivative(ev: Evaluation, model: PWFModel):
     g = dJ_data/dRe(psi) + i dJ_data/dIm(psi) for J_data = L / (4 N_t), L of Eq. (lossFunction).
     """
     xp, fft = model.xp, model.fft
-    s = model.upsample
+    s = max(model.upsample, model.field_upsample)
     r = ev.r
     if s == 1:
         w = r if model.otf is None else fft.irfft2(fft.rfft2(r) * model.otf, s=model.shape)
@@ -343,14 +394,16 @@ def wirtinger_derivative(ev: Evaluation, model: PWFModel):
         if model.otf is not None:
             rs *= model.otf
         w = fft.irfft2(_pad_spectrum(rs, fine, half=True, coarse_nx=model.shape[1]), s=fine)
-        spec = _crop_spectrum(fft.fft2(ev.v * w), model.shape, half=False)
+        spec = fft.fft2(ev.v * w)
+        if model.field_upsample == 1:
+            spec = _crop_spectrum(spec, model.shape, half=False)
     spec *= model.kernel2_conj
     c = fft.ifft2(spec)
     c *= model.t_conj
     if model.kernel1 is not None:
         c = fft.ifft2(fft.fft2(c) * model.kernel1_conj)
     c *= xp.conj(ev.x)
-    g = c
+    g = c if model.field_upsample == 1 else restrict_field(c, model.shape, fft)
     g *= 1.0 / model.norm
     return g.astype(model.cdtype, copy=False)
 

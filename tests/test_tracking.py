@@ -27,8 +27,9 @@ def scenes():
         r = sim.reference(sh)
         lens_r.append(r)
         bead_r.append(r)
-    return dict(lens=(np.array(lens_s), np.array(lens_r), sim._bin(phi)),
-                bead=(np.array(bead_s), np.array(bead_r), bead_phase))
+    return dict(
+        lens=(np.array(lens_s), np.array(lens_r), sim._bin(phi)), bead=(np.array(bead_s), np.array(bead_r), bead_phase)
+    )
 
 
 def gain(phase, truth):
@@ -37,8 +38,17 @@ def gain(phase, truth):
     return float(np.polyfit(truth[inside], ph[inside], 1)[0])
 
 
-@pytest.mark.parametrize("method,k,lo,hi", [("umpa", 1, 0.85, 1.1), ("umpa", 6, 0.85, 1.1), ("lcs", 6, 0.9, 1.1),
-                                            ("gf", 1, 0.9, 1.2), ("mist", 4, 0.9, 1.1), ("mist", 6, 0.9, 1.1)])
+@pytest.mark.parametrize(
+    "method,k,lo,hi",
+    [
+        ("umpa", 1, 0.85, 1.1),
+        ("umpa", 6, 0.85, 1.1),
+        ("lcs", 6, 0.9, 1.1),
+        ("gf", 1, 0.9, 1.2),
+        ("mist", 4, 0.9, 1.1),
+        ("mist", 6, 0.9, 1.1),
+    ],
+)
 def test_baseline_recovers_weak_lens(scenes, method, k, lo, hi):
     s, r, truth = scenes["lens"]
     fn = {"umpa": tracking.umpa, "lcs": tracking.lcs, "gf": tracking.geometric_flow, "mist": tracking.mist}[method]
@@ -96,8 +106,13 @@ def test_gf_phase_only_assumption_breaks_on_absorbing_sample(scenes):
 
 def test_retrieve_projection_dispatches_baselines(scenes):
     s, r, truth = scenes["lens"]
-    kw = dict(energy_eV=1e4, pixel_size_m=0.65e-6, sample_diffuser_distance_m=3e-3,
-              diffuser_detector_distance_m=0.02, background_mask=truth > -0.01)
+    kw = dict(
+        energy_eV=1e4,
+        pixel_size_m=0.65e-6,
+        sample_diffuser_distance_m=3e-3,
+        diffuser_detector_distance_m=0.02,
+        background_mask=truth > -0.01,
+    )
     res = retrieve_projection(s, r, method="lcs", **kw)
     assert res.phase.shape == truth.shape and res.residual_rmse > 0
     assert 0.9 < gain(res.phase, truth) < 1.1

@@ -212,9 +212,12 @@ def test_cylinder_delta_within_5_percent(demo_recon):
     assert float(np.median(demo_recon.delta[0].values[:, core])) == pytest.approx(dc, rel=0.05)
 
 
-@pytest.mark.xfail(strict=True, reason="known: bead delta +22 % / +17 % (positions 0/1) with the paper's alpha "
-                   "and the single-material diffuser: Re(alpha) damps the 12-px bead's attenuation and the phase "
-                   "compensates; +1.2 % / -8.6 % with alpha = 0.1+0.05j (README, Scan-level findings)")
+@pytest.mark.xfail(
+    strict=True,
+    reason="known: bead delta +22 % / +17 % (positions 0/1) with the paper's alpha "
+    "and the single-material diffuser: Re(alpha) damps the 12-px bead's attenuation and the phase "
+    "compensates; +1.2 % / -8.6 % with alpha = 0.1+0.05j (README, Scan-level findings)",
+)
 def test_glass_bead_delta_within_5_percent(demo_recon):
     dg, _ = delta_beta("soda-lime glass", demo_recon.attrs["energy_eV"])
     d, _ = bead_values(demo_recon, 0)
@@ -261,7 +264,10 @@ def test_pwf_k1_beats_lcs_k12_on_bead_beta(demo_recon, lcs12_recon):
     assert bead_errors(demo_recon, 0)[1] < bead_errors(lcs12_recon, 0)[1]
 
 
-@pytest.mark.xfail(strict=True, reason="measured, not the paper's headline: on the demo scene LCS K=12 bead delta "
-                   "is +3.9 %, PWF K=1 +22 % with the paper's alpha (+1.2 % with alpha = 0.1+0.05j; README)")
+@pytest.mark.xfail(
+    strict=True,
+    reason="measured, not the paper's headline: on the demo scene LCS K=12 bead delta "
+    "is +3.9 %, PWF K=1 +22 % with the paper's alpha (+1.2 % with alpha = 0.1+0.05j; README)",
+)
 def test_pwf_k1_beats_lcs_k12_on_bead_delta(demo_recon, lcs12_recon):
     assert bead_errors(demo_recon, 0)[0] < bead_errors(lcs12_recon, 0)[0]

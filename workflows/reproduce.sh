@@ -2,7 +2,7 @@
 # Reproduce the committed results in workflows/results/ (run from the repository root after
 # the README's install command). Each line is one benchmark; run any of them alone.
 #   speed_accuracy.*   ~10 min on 2 cores: PWF, LCS K=3/6/12, UMPA, GF, MIST K=4/12 on the demo scan
-#   stability_map.*    ~13 min: where each method fails (one projection, 256 x 256)
+#   stability_map.*    ~15 min: where each method fails (one projection, 256 x 256)
 #   bench_iteration_*  ~2 min: PWF iteration time / FFT time (add --device gpu on a GPU)
 #   bench_scan_cpu.*   ~3 min: projections/s/worker on a LocalCluster, full-scan model
 #   bead_contrast.*    ~1 min: the largest bead's phase/attenuation contrast against alpha
