@@ -207,7 +207,7 @@ def retrieve_projection(
     tracking_options: dict | None = None,
     sample_material: str = "cellulose",
     sample_delta_over_beta: float | None = None,
-    initial="zero",
+    initial: Any = "zero",
     field_upsample: int | str = "auto",
 ) -> RetrievalResult:
     """Retrieve phase and attenuation from one flat/dark-corrected speckle image (CONTRACT §4).
@@ -228,6 +228,13 @@ def retrieve_projection(
     energy (xraydb) in ``diffuser_refine_iter`` L-BFGS iterations; ``"zero-phase"`` is the
     paper's estimate. ``diffuser`` passes a transmission computed before (e.g. once per diffuser
     position of a scan, by :func:`estimate_diffuser`); it must be on the computational grid.
+
+    ``field_upsample`` evaluates exp(psi), t and both propagations on a finer grid (psi stays
+    on the detector grid; :func:`pwf_dask.solver.build_model`): ``"auto"`` goes on with 2 from
+    the detector-grid solution when its phase gradient exceeds
+    :data:`FIELD_UPSAMPLE_GRADIENT_RAD_PER_PX` (thick samples), 1 is the paper's model.
+    ``initial`` starts Algorithm S1 from zero (the paper), from UMPA's one-image estimate
+    (``"umpa"``), or from a given complex psi of the image's shape.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
@@ -483,6 +490,8 @@ def retrieve_tracking(
 
 
 def _initial_psi(initial, sample, reference, model, energy_eV, pixel_size_m, diffuser_detector_distance_m, options):
+    """psi_0 of Algorithm S1 on the computational grid (None: zeros); the margin continues the
+    frame's edge values, where the sample is assumed to go on."""
     xp = model.xp
     if isinstance(initial, str):
         if initial == "zero":
