@@ -355,7 +355,8 @@ def retrieve_projection(
         jtol=jtol,
     )
     sol = run(model, psi0=psi0)
-    gradient = phase_gradient_rad_per_px(sol.psi[model.frame].imag)
+    # only "auto" needs the statistic: a smoothing pass and a percentile over the frame
+    gradient = phase_gradient_rad_per_px(sol.psi[model.frame].imag) if auto_field else None
     iterations, history = sol.iterations, list(sol.objective_history)
     restarts, backtracks = sol.restarts, sol.backtracks
     if auto_field and gradient > FIELD_UPSAMPLE_GRADIENT_RAD_PER_PX:

@@ -288,11 +288,8 @@ def test_thick_rod_goes_on_a_finer_grid_and_holds():
     thin = Scene(base, phantom, 1.0, 1, 0)
     scene = Scene(base, phantom, 30 * np.pi / np.abs(thin.phase).max(), 1, 0)
     s, r = scene.images(1e4, 1, seed=7)
-    kw = dict(
-        energy_eV=base.energy_eV,
-        pixel_size_m=base.pixel_size_m,
-        sample_diffuser_distance_m=base.sample_diffuser_distance_m,
-        diffuser_detector_distance_m=base.diffuser_detector_distance_m,
+    kw = kwargs(
+        base,  # a SpeckleSetup carries the same geometry fields as a simulated projection
         coherence_length_x_m=base.coherence_length_x_m,
         coherence_length_y_m=base.coherence_length_y_m,
         background_mask=scene.background,
