@@ -1,6 +1,6 @@
 """Command line: parses and calls; every computation lives in the library modules.
 
-Commands of CONTRACT §3: simulate, retrieve, tomo, fsc, run, demo; plus ``bench``.
+Commands of CONTRACT §3: simulate, retrieve, tomo, fsc, run, demo; plus ``ingest`` and ``bench``.
 """
 
 from __future__ import annotations
@@ -90,6 +90,36 @@ def _simulate(args) -> int:
         raw=not args.corrected,
         rotation_axis_offset_px=args.axis_offset_px,
         diffuser_upstream_m=args.diffuser_upstream_m,
+    )
+    print(f"wrote scan {path}")
+    return 0
+
+
+def _ingest(args) -> int:
+    from .ingest import dxchange_specs, ingest_scan
+
+    specs = dxchange_specs(args.dxchange) if args.dxchange else {}
+    projections = args.projections or ([specs["projections"]] if "projections" in specs else None)
+    reference = args.reference or ([specs["reference"]] if "reference" in specs else None)
+    if not projections or not reference:
+        raise ValueError("give --projections and --reference (TIFF files/globs or FILE.h5:/dataset), or --dxchange")
+    angles = args.angles_from or (None if args.angles else specs.get("angles"))
+    path = ingest_scan(
+        args.out,
+        projections=projections,
+        reference=reference,
+        flat=args.flat,
+        dark=args.dark or specs.get("dark"),
+        angles=angles,
+        angles_range_deg=args.angles,
+        angles_unit=args.angles_unit,
+        energy_eV=args.energy_eV,
+        pixel_size_m=args.pixel_size_m,
+        sample_diffuser_distance_m=args.sample_diffuser_distance_m,
+        diffuser_detector_distance_m=args.diffuser_detector_distance_m,
+        coherence_length_x_m=args.coherence_length_x_m,
+        coherence_length_y_m=args.coherence_length_y_m,
+        flat_dark_corrected=args.flat_dark_corrected,
     )
     print(f"wrote scan {path}")
     return 0
@@ -256,6 +286,25 @@ def build_parser() -> argparse.ArgumentParser:
         help="put the diffuser this far upstream of the sample (the scan then has L1 = 0)",
     )
     s.set_defaults(func=_simulate)
+    i = sub.add_parser("ingest", help="TIFF or HDF5 detector files into a scan store (CONTRACT §1)")
+    i.add_argument("out")
+    src = "TIFF file or glob, or FILE.h5:/dataset"
+    i.add_argument("--projections", nargs="+", help=f"sample frames, one {src} per diffuser position")
+    i.add_argument("--reference", nargs="+", help=f"diffuser frames without the sample ({src}), per position")
+    i.add_argument("--flat", help=f"beam without diffuser and sample ({src}; several frames are averaged)")
+    i.add_argument("--dark", help=f"dark frames ({src}; averaged)")
+    i.add_argument("--dxchange", metavar="FILE.h5", help="take the above from tomopy's DXchange layout")
+    i.add_argument("--angles", type=float, nargs=2, metavar=("START", "STOP"), help="evenly spaced, inclusive")
+    i.add_argument("--angles-from", metavar="FILE", help="a text file of angles or FILE.h5:/dataset")
+    i.add_argument("--angles-unit", default="deg", choices=["deg", "rad"])
+    i.add_argument("--energy-eV", type=float, required=True)
+    i.add_argument("--pixel-size-m", type=float, required=True)
+    i.add_argument("--sample-diffuser-distance-m", type=float, required=True, help="L1 (0: diffuser upstream)")
+    i.add_argument("--diffuser-detector-distance-m", type=float, required=True, help="L2")
+    i.add_argument("--coherence-length-x-m", type=float, help="known coherence lengths (else calibrated)")
+    i.add_argument("--coherence-length-y-m", type=float)
+    i.add_argument("--flat-dark-corrected", action="store_true", help="the frames are already (I - dark)/(flat - dark)")
+    i.set_defaults(func=_ingest)
     r = sub.add_parser("retrieve", help="phase and attenuation of every projection (resumable)")
     r.add_argument("scan")
     r.add_argument("recon")

@@ -300,17 +300,31 @@ def interpolate_field(a, fine_shape, fft: FFT):
     """U a: band-limited interpolation of a complex image onto a finer grid (spectral zero
     padding, Nyquist left out); U^H is :func:`restrict_field`."""
     s2 = (fine_shape[0] * fine_shape[1]) / (a.shape[0] * a.shape[1])
-    out = fft.ifft2(_pad_spectrum(fft.fft2(a), fine_shape, half=False))
+    out = fft.ifft2(_pad_spectrum(fft.fft2(a), fine_shape, half=False), overwrite=True)
     out *= s2
     return out
 
 
 def restrict_field(a, coarse_shape, fft: FFT):
     """U^H a, the adjoint of :func:`interpolate_field` (spectral cropping)."""
-    return fft.ifft2(_crop_spectrum(fft.fft2(a), coarse_shape, half=False))
+    return fft.ifft2(_crop_spectrum(fft.fft2(a), coarse_shape, half=False), overwrite=True)
 
 
 # --- Algorithm S2 -----------------------------------------------------------------------
+
+
+def _propagate(a, kernel, fft: FFT, overwrite: bool):
+    """F^-1{F{a} kernel}, in a's memory when ``overwrite`` (the caller no longer needs a)."""
+    spec = fft.fft2(a, overwrite=overwrite)
+    spec *= kernel
+    return fft.ifft2(spec, overwrite=True)
+
+
+def _filter_real(a, transfer_half, fft: FFT):
+    """F^-1{F{a} W} of a real image with a real transfer function on the rfft half plane."""
+    spec = fft.rfft2(a)
+    spec *= transfer_half
+    return fft.irfft2(spec, s=a.shape, overwrite=True)
 
 
 @dataclass
@@ -335,34 +349,36 @@ def physical_model(psi, model: PWFModel) -> Evaluation:
     if model.field_upsample > 1:
         fine = (model.shape[0] * model.field_upsample, model.shape[1] * model.field_upsample)
         x = complex_exp(interpolate_field(psi, fine, fft))
-        a = x if model.kernel1 is None else fft.ifft2(fft.fft2(x) * model.kernel1)
-        spec = fft.fft2(model.t * a)
-        spec *= model.kernel2
-        v = fft.ifft2(spec)
+        a = x if model.kernel1 is None else _propagate(x, model.kernel1, fft, overwrite=False)
+        v = _propagate(model.t * a, model.kernel2, fft, overwrite=True)
         spec_i = _crop_spectrum(fft.rfft2(abs2(v)), model.shape, half=True)
         if model.otf is not None:
             spec_i *= model.otf
-        f = fft.irfft2(spec_i, s=model.shape)
+        f = fft.irfft2(spec_i, s=model.shape, overwrite=True)
         f *= 1.0 / model.field_upsample**2
         return Evaluation(x=x, v=v, f=f.astype(model.rdtype, copy=False), r=None, loss=math.nan)
     x = complex_exp(psi)
-    a = x if model.kernel1 is None else fft.ifft2(fft.fft2(x) * model.kernel1)
-    spec = fft.fft2(model.t * a)
+    if model.kernel1 is None:
+        a = model.t * x
+    else:
+        a = _propagate(x, model.kernel1, fft, overwrite=False)
+        a *= model.t
+    spec = fft.fft2(a, overwrite=True)
     spec *= model.kernel2
     s = model.upsample
     if s == 1:
-        v = fft.ifft2(spec)
+        v = fft.ifft2(spec, overwrite=True)
         intensity = abs2(v)
-        f = intensity if model.otf is None else fft.irfft2(fft.rfft2(intensity) * model.otf, s=model.shape)
+        f = intensity if model.otf is None else _filter_real(intensity, model.otf, fft)
     else:
         fine = (model.shape[0] * s, model.shape[1] * s)
-        v = fft.ifft2(_pad_spectrum(spec, fine, half=False))
+        v = fft.ifft2(_pad_spectrum(spec, fine, half=False), overwrite=True)
         v *= s * s
         intensity = abs2(v)
         spec_i = _crop_spectrum(fft.rfft2(intensity), model.shape, half=True)
         if model.otf is not None:
             spec_i *= model.otf
-        f = fft.irfft2(spec_i, s=model.shape)
+        f = fft.irfft2(spec_i, s=model.shape, overwrite=True)
         f *= 1.0 / (s * s)
     return Evaluation(x=x, v=v, f=f.astype(model.rdtype, copy=False), r=None, loss=math.nan)
 
@@ -386,22 +402,22 @@ def wirtinger_derivative(ev: Evaluation, model: PWFModel):
     s = max(model.upsample, model.field_upsample)
     r = ev.r
     if s == 1:
-        w = r if model.otf is None else fft.irfft2(fft.rfft2(r) * model.otf, s=model.shape)
-        spec = fft.fft2(ev.v * w)
+        w = r if model.otf is None else _filter_real(r, model.otf, fft)
+        spec = fft.fft2(ev.v * w, overwrite=True)
     else:
         fine = (model.shape[0] * s, model.shape[1] * s)
         rs = fft.rfft2(r)
         if model.otf is not None:
             rs *= model.otf
-        w = fft.irfft2(_pad_spectrum(rs, fine, half=True, coarse_nx=model.shape[1]), s=fine)
-        spec = fft.fft2(ev.v * w)
+        w = fft.irfft2(_pad_spectrum(rs, fine, half=True, coarse_nx=model.shape[1]), s=fine, overwrite=True)
+        spec = fft.fft2(ev.v * w, overwrite=True)
         if model.field_upsample == 1:
             spec = _crop_spectrum(spec, model.shape, half=False)
     spec *= model.kernel2_conj
-    c = fft.ifft2(spec)
+    c = fft.ifft2(spec, overwrite=True)
     c *= model.t_conj
     if model.kernel1 is not None:
-        c = fft.ifft2(fft.fft2(c) * model.kernel1_conj)
+        c = _propagate(c, model.kernel1_conj, fft, overwrite=True)
     c *= xp.conj(ev.x)
     g = c if model.field_upsample == 1 else restrict_field(c, model.shape, fft)
     g *= 1.0 / model.norm
@@ -452,14 +468,15 @@ def objective_and_direction(psi, y, model: PWFModel):
     g = wirtinger_derivative(ev, model)
     reg_value, re_term, im_term = _regularizer(psi, model)
     j = ev.loss / (4.0 * model.norm) + reg_value
-    re_dir = g.real if re_term is None else g.real + fft.irfft2(re_term, s=model.shape)
+    re_dir = g.real if re_term is None else g.real + fft.irfft2(re_term, s=model.shape, overwrite=True)
     if model.precond is not None:
-        im_spec = fft.rfft2(xp.ascontiguousarray(g.imag)) * model.precond
+        im_spec = fft.rfft2(xp.ascontiguousarray(g.imag))
+        im_spec *= model.precond
         if im_term is not None:
             im_spec += im_term
-        im_dir = fft.irfft2(im_spec, s=model.shape)
+        im_dir = fft.irfft2(im_spec, s=model.shape, overwrite=True)
     else:
-        im_dir = g.imag if im_term is None else g.imag + fft.irfft2(im_term, s=model.shape)
+        im_dir = g.imag if im_term is None else g.imag + fft.irfft2(im_term, s=model.shape, overwrite=True)
     if model.phase_scale != 1.0:
         im_dir = im_dir * model.phase_scale
     direction = xp.empty(model.shape, dtype=model.cdtype)
@@ -665,7 +682,7 @@ def pwf(
         else:
             if last is not None:
                 dpsi = psi - last[0]
-                steps.append(float(xp.sqrt(xp.mean(dpsi.real**2 + dpsi.imag**2))))
+                steps.append(math.sqrt(float(xp.vdot(dpsi, dpsi).real) / dpsi.size))
                 x_norm = float(xp.linalg.norm(ev.x))
                 corr = float(abs(xp.vdot(last[3].x, ev.x))) / (x_norm * last_x_norm)
                 streak = streak + 1 if 1.0 - corr < tol else 0
