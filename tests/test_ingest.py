@@ -9,7 +9,9 @@ from pwf_dask import cli, scan_io
 from pwf_dask.ingest import ingest_scan, read_angles_deg
 from pwf_dask.simulation import simulate_scan
 
-GEOMETRY = dict(energy_eV=10_000.0, pixel_size_m=0.65e-6, sample_diffuser_distance_m=3e-3, diffuser_detector_distance_m=0.02)
+GEOMETRY = dict(
+    energy_eV=10_000.0, pixel_size_m=0.65e-6, sample_diffuser_distance_m=3e-3, diffuser_detector_distance_m=0.02
+)
 GEOMETRY_ARGS = [
     "--energy-eV",
     "10000",
