@@ -78,7 +78,7 @@ class PWFModel:
     kernel1: Any  # None when L1 = 0
     kernel2: Any
     kernel1_conj: Any  # adjoint propagators P^H = P_{-L}, precomputed once
-    kernel2_conj: Any
+    kernel2_conj: Any  # conj(P2 kernel) / N_t: the derivative's 1/N_t rides on a multiply it needs anyway
     otf: Any  # intensity transfer (half spectrum) or None (full coherence, no pixel blur)
     upsample: int
     norm: float
@@ -92,6 +92,9 @@ class PWFModel:
     cdtype: Any
     info: dict = field(default_factory=dict)
     field_upsample: int = 1
+    #: per part of psi (Re, Im): (rfft weights of its value in J, its direction filter
+    #: Re/Im(alpha) Gamma^2), or None where that part of alpha is 0; precomputed by build_model
+    reg_terms: tuple = (None, None)
 
 
 def _half_weights(shape, xp, dtype):
@@ -226,7 +229,7 @@ def build_model(
         kernel1=k1,
         kernel2=k2,
         kernel1_conj=None if k1 is None else xp.conj(k1),
-        kernel2_conj=xp.conj(k2),
+        kernel2_conj=xp.conj(k2) / norm,
         otf=otf,
         upsample=int(upsample),
         norm=norm,
@@ -244,6 +247,17 @@ def build_model(
         cdtype=cdt,
         info={"pad": pad, "pixel_integration": pixel_integration, "gamma": gamma},
         field_upsample=field_upsample,
+        reg_terms=_regularizer_terms(reg, reg_phase, _half_weights(shape, xp, rdt), alpha),
+    )
+
+
+def _regularizer_terms(reg_window, reg_phase_weight, weights, alpha: complex) -> tuple:
+    """(value weights, direction filter) for Re psi and Im psi; None where unused."""
+    if reg_window is None:
+        return (None, None)
+    return tuple(
+        None if a == 0 else (a * weights * w, a * reg_window)
+        for w, a in ((reg_window, alpha.real), (reg_phase_weight, alpha.imag))
     )
 
 
@@ -420,7 +434,6 @@ def wirtinger_derivative(ev: Evaluation, model: PWFModel):
         c = _propagate(c, model.kernel1_conj, fft, overwrite=True)
     c *= xp.conj(ev.x)
     g = c if model.field_upsample == 1 else restrict_field(c, model.shape, fft)
-    g *= 1.0 / model.norm
     return g.astype(model.cdtype, copy=False)
 
 
@@ -437,16 +450,16 @@ def _regularizer(psi, model: PWFModel):
     n = model.shape[0] * model.shape[1]
     value = 0.0
     terms = []
-    for part, weight, a in (
-        (psi.real, model.reg_window, model.alpha.real),
-        (psi.imag, model.reg_phase_weight, model.alpha.imag),
-    ):
-        if a == 0:
+    for part, term in zip((psi.real, psi.imag), model.reg_terms):
+        if term is None:
             terms.append(None)
             continue
+        value_weights, direction_filter = term
         sp = fft.rfft2(xp.ascontiguousarray(part))
-        value += 0.5 * a * float(xp.sum(model.reg_weights * weight * (sp.real**2 + sp.imag**2))) / n
-        sp *= a * model.reg_window
+        power = abs2(sp)
+        power *= value_weights
+        value += 0.5 * float(xp.sum(power)) / n
+        sp *= direction_filter
         terms.append(sp)
     return value, terms[0], terms[1]
 
@@ -468,21 +481,21 @@ def objective_and_direction(psi, y, model: PWFModel):
     g = wirtinger_derivative(ev, model)
     reg_value, re_term, im_term = _regularizer(psi, model)
     j = ev.loss / (4.0 * model.norm) + reg_value
-    re_dir = g.real if re_term is None else g.real + fft.irfft2(re_term, s=model.shape, overwrite=True)
+    # the direction is written in place into g: Re(g) plus the regularizer, then the
+    # preconditioned Im(g) plus the phase regularizer (summed in Fourier space)
+    if re_term is not None:
+        g.real += fft.irfft2(re_term, s=model.shape, overwrite=True)
     if model.precond is not None:
         im_spec = fft.rfft2(xp.ascontiguousarray(g.imag))
         im_spec *= model.precond
         if im_term is not None:
             im_spec += im_term
-        im_dir = fft.irfft2(im_spec, s=model.shape, overwrite=True)
-    else:
-        im_dir = g.imag if im_term is None else g.imag + fft.irfft2(im_term, s=model.shape, overwrite=True)
+        g.imag = fft.irfft2(im_spec, s=model.shape, overwrite=True)
+    elif im_term is not None:
+        g.imag += fft.irfft2(im_term, s=model.shape, overwrite=True)
     if model.phase_scale != 1.0:
-        im_dir = im_dir * model.phase_scale
-    direction = xp.empty(model.shape, dtype=model.cdtype)
-    direction.real = re_dir
-    direction.imag = im_dir
-    return j, direction, ev
+        g.imag *= model.phase_scale
+    return j, g, ev
 
 
 def objective(psi, y, model: PWFModel) -> float:
@@ -711,7 +724,8 @@ def pwf(
                 converged = True
                 reason = "converged"
                 break
-        phi = psi - eta * d
+        phi = d * (-eta)
+        phi += psi
         mu_prev = mu
         mu = 0.5 * (1.0 + math.sqrt(1.0 + 4.0 * mu * mu))
         beta = (mu_prev - 1.0) / mu
@@ -725,7 +739,12 @@ def pwf(
             mu, beta = 1.0, 0.0
             stalled = 0
         momentum_used = beta > 0
-        psi = phi + beta * dphi if momentum_used else phi
+        if momentum_used:
+            dphi *= beta
+            dphi += phi
+            psi = dphi
+        else:
+            psi = phi
         phi_prev = phi
     psi_best, _, _, ev_best = last
     return PWFSolution(
