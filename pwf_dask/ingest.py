@@ -67,6 +67,11 @@ class FrameSource:
     def _open_hdf5(self, filename: str, dataset: str) -> None:
         import h5py
 
+        try:  # detector files are often compressed with filter plugins (bitshuffle, LZ4)
+            import hdf5plugin  # noqa: F401
+        except ImportError:
+            pass
+
         if not Path(filename).is_file():
             raise ScanError(f"{self.what}: no such HDF5 file {filename}")
         f = h5py.File(filename, "r")
@@ -114,6 +119,9 @@ class FrameSource:
         self._tiff, self.positions, self._n = pages, 1, len(pages)
         self.frame_shape, self.dtype = shape, dtype
         self._file = None
+        # open files, their parsed pages cached: a page is found by walking the file's chain
+        # of image directories, so reopening per frame would cost O(n^2) on an 801-page stack
+        self._open_tiffs: dict = {}
 
     def __len__(self) -> int:
         return self._n
@@ -123,7 +131,11 @@ class FrameSource:
             import tifffile
 
             name, page = self._tiff[i]
-            return tifffile.imread(name, key=page)
+            tif = self._open_tiffs.get(name)
+            if tif is None:
+                tif = self._open_tiffs[name] = tifffile.TiffFile(name)
+                tif.pages.cache = True
+            return tif.pages[page].asarray()
         return np.asarray(self._data[self._index(i, position)])
 
     def mean(self, position: int = 0) -> np.ndarray:
@@ -136,6 +148,8 @@ class FrameSource:
     def close(self) -> None:
         if self._file is not None:
             self._file.close()
+        for tif in getattr(self, "_open_tiffs", {}).values():
+            tif.close()
 
 
 def read_angles_deg(spec: str | None, n: int, start_stop: Sequence[float] | None, unit: str = "deg") -> np.ndarray:
