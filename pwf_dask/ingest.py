@@ -58,6 +58,11 @@ class FrameSource:
 
     def __init__(self, spec: str, what: str):
         self.spec, self.what = spec, what
+        self._file = None
+        self._tiff: list[tuple[str, int]] | None = None
+        # open TIFF files, their parsed pages cached: a page is found by walking the file's
+        # chain of image directories, so reopening per frame costs O(n^2) on an 801-page stack
+        self._open_tiffs: dict = {}
         h5 = _split_hdf5(spec)
         if h5 is not None:
             self._open_hdf5(*h5)
@@ -90,9 +95,9 @@ class FrameSource:
             self.positions, self._n, self.frame_shape = d.shape[0], d.shape[1], tuple(d.shape[2:])
             self._index = lambda i, k: (k, i)
         else:
+            f.close()
             raise ScanError(f"{self.what}: {self.spec} has {d.ndim} dims, expected (frames, y, x) or (y, x)")
         self.dtype = np.dtype(d.dtype)
-        self._tiff = None
 
     def _open_tiff(self, pattern: str) -> None:
         import tifffile
@@ -118,10 +123,6 @@ class FrameSource:
             raise ScanError(f"{self.what}: {files[0]} has frames of shape {shape}, expected 2-D images")
         self._tiff, self.positions, self._n = pages, 1, len(pages)
         self.frame_shape, self.dtype = shape, dtype
-        self._file = None
-        # open files, their parsed pages cached: a page is found by walking the file's chain
-        # of image directories, so reopening per frame would cost O(n^2) on an 801-page stack
-        self._open_tiffs: dict = {}
 
     def __len__(self) -> int:
         return self._n
@@ -148,7 +149,7 @@ class FrameSource:
     def close(self) -> None:
         if self._file is not None:
             self._file.close()
-        for tif in getattr(self, "_open_tiffs", {}).values():
+        for tif in self._open_tiffs.values():
             tif.close()
 
 
@@ -237,7 +238,7 @@ def ingest_scan(
         flat_src = FrameSource(flat, "flat") if flat else None
         dark_src = FrameSource(dark, "dark") if dark else None
         sources += [s for s in (flat_src, dark_src) if s is not None]
-        # (position, source, index within the source) for each position
+        # per diffuser position: (its source, its index in a 4-D HDF5 dataset)
         if len(proj) == 1 and proj[0].positions > 1:
             positions = [(proj[0], k) for k in range(proj[0].positions)]
         else:
@@ -267,6 +268,8 @@ def ingest_scan(
 
         flat_img = stored(flat_src.mean()) if flat_src else None
         dark_img = stored(dark_src.mean()) if dark_src else None
+        if flat_img is not None and dark_img is not None and np.any(flat_img.astype(np.float32) <= dark_img):
+            raise ScanError("flat: some pixels are not above the dark (flat - dark <= 0)")
         attrs = {
             "energy_eV": float(energy_eV),
             "pixel_size_m": float(pixel_size_m),
@@ -313,12 +316,6 @@ def ingest_scan(
         for name, img in (("flat", flat_img), ("dark", dark_img)):
             if img is not None:
                 _create(g, name, shape, shape, ("y", "x"), dtype, 0, img)
-        if (
-            flat_img is not None
-            and dark_img is not None
-            and np.any(np.asarray(flat_img, np.float32) <= np.asarray(dark_img, np.float32))
-        ):
-            raise ScanError("flat: some pixels are not above the dark (flat - dark <= 0)")
         for k, (src, idx, average) in enumerate(ref_frames):
             img = stored(src.mean(idx) if average else src.frame(k))
             check(f"reference {k}", img)

@@ -157,6 +157,7 @@ def _tiff_scan(tmp_path, ds, n_angles=None, low_frame=False):
         ("negative", "projection 3 of position 0"),
         ("no_angles", "either a start and stop or a file"),
         ("no_source", "give --projections and --reference"),
+        ("flat_at_dark", "not above the dark"),
     ],
 )
 def test_bad_input_is_refused_in_one_line_and_writes_nothing(source_scan, tmp_path, capsys, case, message):
@@ -176,6 +177,9 @@ def test_bad_input_is_refused_in_one_line_and_writes_nothing(source_scan, tmp_pa
         angles = []
     elif case == "no_source":
         src = []
+    elif case == "flat_at_dark":
+        tifffile.imwrite(tmp_path / "flat.tif", ds["dark"].values)
+        src += ["--flat", str(tmp_path / "flat.tif")]
     assert cli.main(["ingest", str(out), *src, *angles, *GEOMETRY_ARGS]) != 0
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.startswith("pwf-dask ingest: error:") and message in err, err
