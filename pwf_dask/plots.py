@@ -68,9 +68,10 @@ def bench_ratio_plot(path: str | Path, rows: list[dict]) -> Path:
     """Iteration time / FFT time per size, one line per variant."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
-    for variant in sorted({r["variant"] for r in rows}):
-        sel = [r for r in rows if r["variant"] == variant]
-        ax.plot([r["pixels"] for r in sel], [r["ratio"] for r in sel], "o-", label=variant)
+    for variant, threads in sorted({(r["variant"], r.get("fft_workers", 1)) for r in rows}):
+        sel = [r for r in rows if r["variant"] == variant and r.get("fft_workers", 1) == threads]
+        label = f"{variant}, {threads} thread{'s' if int(threads) > 1 else ''}"
+        ax.plot([r["pixels"] for r in sel], [r["ratio"] for r in sel], "o-", label=label)
     ax.set_xscale("log")
     ax.set_xlabel("pixels per projection")
     ax.set_ylabel("PWF iteration time / complex64 FFT time")

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from . import optics
-from .backend import FFT, abs2, complex_dtype, complex_exp, real_dtype
+from .backend import FFT, abs2, complex_dtype, complex_exp, inner, real_dtype
 
 #: The paper's stop rule: normalised correlation of successive fields > 10^-0.00001.
 PAPER_TOL = 1.0 - 10.0 ** (-0.00001)
@@ -362,7 +362,7 @@ def physical_model(psi, model: PWFModel) -> Evaluation:
     fft = model.fft
     if model.field_upsample > 1:
         fine = (model.shape[0] * model.field_upsample, model.shape[1] * model.field_upsample)
-        x = complex_exp(interpolate_field(psi, fine, fft))
+        x = complex_exp(interpolate_field(psi, fine, fft), fft.workers)
         a = x if model.kernel1 is None else _propagate(x, model.kernel1, fft, overwrite=False)
         v = _propagate(model.t * a, model.kernel2, fft, overwrite=True)
         spec_i = _crop_spectrum(fft.rfft2(abs2(v)), model.shape, half=True)
@@ -371,7 +371,7 @@ def physical_model(psi, model: PWFModel) -> Evaluation:
         f = fft.irfft2(spec_i, s=model.shape, overwrite=True)
         f *= 1.0 / model.field_upsample**2
         return Evaluation(x=x, v=v, f=f.astype(model.rdtype, copy=False), r=None, loss=math.nan)
-    x = complex_exp(psi)
+    x = complex_exp(psi, fft.workers)
     if model.kernel1 is None:
         a = model.t * x
     else:
@@ -695,13 +695,13 @@ def pwf(
         else:
             if last is not None:
                 dpsi = psi - last[0]
-                steps.append(math.sqrt(float(xp.vdot(dpsi, dpsi).real) / dpsi.size))
-                x_norm = float(xp.linalg.norm(ev.x))
-                corr = float(abs(xp.vdot(last[3].x, ev.x))) / (x_norm * last_x_norm)
+                steps.append(math.sqrt(inner(dpsi, dpsi).real / dpsi.size))
+                x_norm = math.sqrt(inner(ev.x, ev.x).real)
+                corr = abs(inner(last[3].x, ev.x)) / (x_norm * last_x_norm)
                 streak = streak + 1 if 1.0 - corr < tol else 0
                 last_x_norm = x_norm
             else:
-                last_x_norm = float(xp.linalg.norm(ev.x))
+                last_x_norm = math.sqrt(inner(ev.x, ev.x).real)
             if last is None and step_search:
                 eta = initial_step(psi, d, j, y, model, eta)
             if not momentum_used:
@@ -731,7 +731,7 @@ def pwf(
         beta = (mu_prev - 1.0) / mu
         run += 1
         dphi = phi - phi_prev
-        if restart == "gradient" and beta > 0 and (float(xp.vdot(d, dphi).real) > 0 or stalled >= stall_limit):
+        if restart == "gradient" and beta > 0 and (inner(d, dphi).real > 0 or stalled >= stall_limit):
             # the momentum points uphill along the (preconditioned) gradient at psi, or has
             # made no new low of J for ``stall_limit`` iterations (the uphill test can stay
             # silent for ever while J oscillates: at L1 = 0, one 1000-iteration run)
