@@ -144,6 +144,16 @@ def _pool():
     return _POOL
 
 
+def _forget_pool_in_child() -> None:
+    # a forked worker inherits the pool object but not its threads: start a fresh one there
+    global _POOL
+    _POOL = None
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool_in_child)
+
+
 def _complex_exp_into(z, out) -> None:
     mag = np.exp(z.real)
     np.multiply(mag, np.cos(z.imag), out=out.real)
