@@ -84,8 +84,6 @@ class PWFModel:
     norm: float
     reg_window: Any  # Gamma^2 (half spectrum), None when gamma = 0 or alpha = 0
     precond: Any  # P^-1 (half spectrum), None when the preconditioner is off
-    reg_phase_weight: Any  # (u^2+v^2) Gamma^2 or Gamma^2: the phase part of J
-    reg_weights: Any  # rfft bin multiplicities for Parseval sums
     phase_scale: float  # kappa: block scaling of the phase direction (see phase_block_scale)
     alpha: complex
     rdtype: Any
@@ -235,8 +233,6 @@ def build_model(
         norm=norm,
         reg_window=reg,
         precond=precond,
-        reg_phase_weight=reg_phase,
-        reg_weights=_half_weights(shape, xp, rdt),
         phase_scale=(
             phase_block_scale(wavelength, diffuser_detector_distance_m, pixel_size_m)
             if phase_scale == "auto"
@@ -252,7 +248,11 @@ def build_model(
 
 
 def _regularizer_terms(reg_window, reg_phase_weight, weights, alpha: complex) -> tuple:
-    """(value weights, direction filter) for Re psi and Im psi; None where unused."""
+    """(value weights, direction filter) for Re psi and Im psi; None where unused.
+
+    ``reg_phase_weight`` is the phase part of J: (u^2+v^2) Gamma^2 with the preconditioner,
+    Gamma^2 without (module docstring); ``weights`` are the rfft bin multiplicities of the
+    Parseval sum."""
     if reg_window is None:
         return (None, None)
     return tuple(

@@ -218,14 +218,14 @@ def mist(sample, reference, *, fresnel: float, delta_over_beta: float, regulariz
     u = xp.asarray(np.fft.fftfreq(2 * nx)[None, :])
     minus_lap = (2 - 2 * xp.cos(2 * np.pi * u)) + (2 - 2 * xp.cos(2 * np.pi * v))
     grad_x, grad_y = 1j * xp.sin(2 * np.pi * u), 1j * xp.sin(2 * np.pi * v)  # central differences
-    g = fresnel * delta_over_beta / (4 * np.pi)
+    big_g = fresnel * delta_over_beta / (4 * np.pi)  # G of the docstring
     b_hat = fft.fft2(_mirror(b, 1, 1, xp))
     a_eq = fft.fft2(_mirror(a, 1, 1, xp)) + minus_lap * b_hat  # = (1 + G |q|^2) I_ob
     cx_eq = fft.fft2(_mirror(cx, -1, 1, xp)) - 2 * grad_x * b_hat  # = -G grad_x I_ob
     cy_eq = fft.fft2(_mirror(cy, 1, -1, xp)) - 2 * grad_y * b_hat
-    paganin = 1 + g * minus_lap
-    numerator = paganin * a_eq - g * (xp.conj(grad_x) * cx_eq + xp.conj(grad_y) * cy_eq)
-    denominator = paganin**2 + g * g * (xp.abs(grad_x) ** 2 + xp.abs(grad_y) ** 2)
+    paganin = 1 + big_g * minus_lap
+    numerator = paganin * a_eq - big_g * (xp.conj(grad_x) * cx_eq + xp.conj(grad_y) * cy_eq)
+    denominator = paganin**2 + big_g * big_g * (xp.abs(grad_x) ** 2 + xp.abs(grad_y) ** 2)
     i_ob = fft.ifft2(numerator / denominator).real[:ny, :nx]
     attenuation = -0.5 * xp.log(xp.clip(i_ob, 1e-6, None))
     phase = -delta_over_beta * attenuation
