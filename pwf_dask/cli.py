@@ -139,6 +139,7 @@ def _retrieval_kwargs(args) -> dict:
         diffuser_material=args.diffuser_material,
         sample_material=args.sample_material,
         sample_delta_over_beta=args.sample_delta_over_beta,
+        outlier_sigma=args.outlier_sigma,
     )
 
 
@@ -221,6 +222,7 @@ def _compute_options(p: argparse.ArgumentParser) -> None:
 
 
 def _retrieval_options(p: argparse.ArgumentParser) -> None:
+    from .detector import DEFAULT_OUTLIER_SIGMA
     from .solver import DEFAULT_ALPHA, PAPER_TOL
 
     p.add_argument("--method", default="pwf", choices=["pwf", "lcs", "umpa", "gf", "mist"])
@@ -263,6 +265,13 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--sample-delta-over-beta", type=float, help="mist only: the sample's delta/beta (overrides --sample-material)"
+    )
+    p.add_argument(
+        "--outlier-sigma",
+        type=float,
+        default=DEFAULT_OUTLIER_SIGMA,
+        help="detector defects: single-pixel spikes and dips (zingers, hot/dead pixels) beyond this many noise "
+        "sigmas of all their neighbours are left out (sample) or repaired (reference); 0 keeps every pixel",
     )
 
 

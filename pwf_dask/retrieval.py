@@ -15,6 +15,7 @@ import numpy as np
 from . import background as bg
 from . import calibration, optics, solver
 from .backend import FFT, get_array_module, to_numpy
+from .detector import DEFAULT_OUTLIER_SIGMA, repair_outliers
 from .materials import delta_beta
 
 METHODS = ("pwf", "umpa", "lcs", "gf", "mist")
@@ -209,6 +210,7 @@ def retrieve_projection(
     sample_delta_over_beta: float | None = None,
     initial: Any = "zero",
     field_upsample: int | str = "auto",
+    outlier_sigma: float | None = DEFAULT_OUTLIER_SIGMA,
 ) -> RetrievalResult:
     """Retrieve phase and attenuation from one flat/dark-corrected speckle image (CONTRACT §4).
 
@@ -248,6 +250,7 @@ def retrieve_projection(
             diffuser_detector_distance_m=diffuser_detector_distance_m,
             background_mask=background_mask,
             zero_background=zero_background,
+            outlier_sigma=outlier_sigma,
             **(tracking_options or {}),
             **(
                 {"delta_over_beta": mist_delta_over_beta(sample_material, sample_delta_over_beta, energy_eV)}
@@ -260,6 +263,11 @@ def retrieve_projection(
     ref = _check_image("reference", reference, xp)
     if y.shape != ref.shape:
         raise ValueError(f"sample {y.shape} and reference {ref.shape} differ in shape")
+    # spikes: the reference is repaired (the diffuser estimate needs every pixel), the
+    # sample's are left out of the data term (and repaired for the statistics that read it)
+    ref, ref_outliers = repair_outliers(ref, outlier_sigma)
+    y, outliers = repair_outliers(y, outlier_sigma)
+    n_outliers = int(outliers.sum())
     if not pixel_size_m > 0:
         raise ValueError(f"pixel_size_m must be positive, got {pixel_size_m}")
     if sample_diffuser_distance_m < 0 or not diffuser_detector_distance_m > 0:
@@ -335,6 +343,7 @@ def retrieve_projection(
         precision=precision,
         normalization=normalization,
         phase_scale=phase_scale,
+        bad_pixels=outliers if n_outliers else None,
         fft=fft,
     )
     auto_field = field_upsample == "auto"
@@ -379,6 +388,7 @@ def retrieve_projection(
         phase = bg.zero_background(phase, mask)
         attenuation = bg.zero_background(attenuation, mask)
     res = to_numpy(xp.abs(sol.evaluation.r[model.frame])) * 100.0
+    measured = ~to_numpy(outliers)  # the rms is over the pixels the data term fitted
     params = {
         "method": method,
         "gamma": gamma,
@@ -410,6 +420,9 @@ def retrieve_projection(
         "restarts": restarts,
         "backtracks": backtracks,
         "stop_reason": sol.stop_reason,
+        "outlier_sigma": outlier_sigma,
+        "outlier_pixels": n_outliers,
+        "outlier_pixels_reference": int(ref_outliers.sum()),
     }
     return RetrievalResult(
         phase=xp.asarray(phase.astype(rdt)),
@@ -417,7 +430,7 @@ def retrieve_projection(
         iterations=iterations,
         converged=sol.converged,
         residual=xp.asarray(res.astype(rdt)),
-        residual_rmse=float(np.sqrt(np.mean(res.astype(np.float64) ** 2))),
+        residual_rmse=float(np.sqrt(np.mean(res[measured].astype(np.float64) ** 2))),
         loss_history=history,
         coherence_length_x_m=float(coherence_length_x_m),
         coherence_length_y_m=float(coherence_length_y_m),
@@ -436,6 +449,7 @@ def retrieve_tracking(
     diffuser_detector_distance_m: float,
     background_mask=None,
     zero_background: bool = True,
+    outlier_sigma: float | None = DEFAULT_OUTLIER_SIGMA,
     **options,
 ) -> RetrievalResult:
     """The speckle-tracking baselines (``umpa``, ``lcs``, ``gf``, ``mist``) behind the same
@@ -443,7 +457,9 @@ def retrieve_tracking(
 
     ``sample`` and ``reference`` are (y, x) or (K, y, x) stacks of K diffuser positions (LCS
     needs K >= 3, MIST K >= 4); the results are (y, x). ``options`` go to the method (e.g.
-    ``window``, ``max_shift`` for UMPA, ``delta_over_beta`` for MIST).
+    ``window``, ``max_shift`` for UMPA, ``delta_over_beta`` for MIST). Spikes beyond
+    ``outlier_sigma`` (:mod:`pwf_dask.detector`) are replaced by their neighbours' median in
+    every frame first: the trackers need every pixel.
     """
     from . import tracking
 
@@ -457,6 +473,8 @@ def retrieve_tracking(
             raise ValueError(f"{name} has non-finite values (NaN or inf)")
         if bool(xp.any(a < 0)):
             raise ValueError(f"{name} has negative values: pass flat/dark-corrected intensities")
+    s, s_outliers = repair_outliers(s, outlier_sigma)
+    r, r_outliers = repair_outliers(r, outlier_sigma)
     scale = float(xp.mean(r))
     s, r = s / scale, r / scale
     fresnel = optics.wavelength_m(energy_eV) * diffuser_detector_distance_m / pixel_size_m**2
@@ -485,7 +503,13 @@ def retrieve_tracking(
         loss_history=[],
         coherence_length_x_m=float("nan"),
         coherence_length_y_m=float("nan"),
-        parameters={"method": method, **options},
+        parameters={
+            "method": method,
+            **options,
+            "outlier_sigma": outlier_sigma,
+            "outlier_pixels": int(s_outliers.sum()),
+            "outlier_pixels_reference": int(r_outliers.sum()),
+        },
         background=mask,
     )
 

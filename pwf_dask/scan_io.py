@@ -237,6 +237,7 @@ RECON_KEYS = (
     "pad",
     "normalization",
     "preconditioner",
+    "outlier_sigma",
 )
 
 
@@ -276,6 +277,7 @@ def create_reconstruction(path: str | Path, info: ScanInfo, params: dict):
     _create(g, "iterations", (npos, nang), (1, 1), ("position", "angle"), "int32", -1)
     _create(g, "converged", (npos, nang), (1, 1), ("position", "angle"), "bool", False)
     _create(g, "residual_rmse", (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
+    _create(g, "outlier_pixels", (npos, nang), (1, 1), ("position", "angle"), "int32", -1)
     attrs = {k: v for k, v in info.attrs.items() if isinstance(v, (int, float, str, bool))}
     attrs.update({k: v for k, v in params.items() if isinstance(v, (int, float, str, bool)) or v is None})
     attrs["pwf_dask_parameters"] = json.dumps(params, default=str)

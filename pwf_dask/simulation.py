@@ -183,6 +183,15 @@ class SimulatedProjection:
     phantom: Phantom | None = None
     extras: dict = field(default_factory=dict)
 
+    def geometry(self) -> dict:
+        """The keyword arguments :func:`pwf_dask.retrieve_projection` needs for these images."""
+        return dict(
+            energy_eV=self.energy_eV,
+            pixel_size_m=self.pixel_size_m,
+            sample_diffuser_distance_m=self.sample_diffuser_distance_m,
+            diffuser_detector_distance_m=self.diffuser_detector_distance_m,
+        )
+
 
 @dataclass
 class SpeckleSetup:

@@ -151,6 +151,7 @@ def build_model(
     normalization: str = "paper",
     phase_scale: float | str = 1.0,
     field_upsample: int = 1,
+    bad_pixels=None,
     fft: FFT | None = None,
 ) -> PWFModel:
     """Precompute the kernels, filters and normalisation of Algorithm S1 for one geometry.
@@ -167,6 +168,9 @@ def build_model(
     interpolated unwrapped phase keeps the tilt. The intensity is band-limited back to the
     detector grid as with ``upsample``. Costs about s^2 times the FFT work; s = 1 is the
     paper's model, unchanged.
+
+    ``bad_pixels`` (frame-shaped, True = not a measurement, e.g. a zinger) are left out of
+    the data term, as the padding margin is: the residual is masked there.
     """
     from .backend import get_array_module
 
@@ -177,10 +181,13 @@ def build_model(
     ny, nx = frame_shape
     frame = (slice(pad, pad + ny), slice(pad, pad + nx))
     mask = None
-    if shape != tuple(frame_shape):
-        mask_h = np.zeros(shape, dtype=rdt)
-        mask_h[frame] = 1
-        mask = xp.asarray(mask_h)
+    if shape != tuple(frame_shape) or bad_pixels is not None:
+        mask = xp.zeros(shape, dtype=rdt)
+        mask[frame] = 1
+        if bad_pixels is not None:
+            if tuple(bad_pixels.shape) != tuple(frame_shape):
+                raise ValueError(f"bad_pixels has shape {tuple(bad_pixels.shape)}, the frame {tuple(frame_shape)}")
+            mask[frame] *= 1 - xp.asarray(bad_pixels, dtype=rdt)
     t = t.astype(cdt, copy=False)
     field_upsample = int(field_upsample)
     if field_upsample < 1:

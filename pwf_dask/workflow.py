@@ -20,6 +20,7 @@ import numpy as np
 from . import __version__, calibration, fsc, scan_io, tomography
 from .backend import resolve_device, to_numpy
 from .cluster import Runner, worker_fft_threads
+from .detector import DEFAULT_OUTLIER_SIGMA, check_threshold, repair_outliers
 from .optics import wavelength_m
 from .retrieval import METHODS
 from .solver import DEFAULT_ALPHA, PAPER_TOL
@@ -31,6 +32,12 @@ MULTI_IMAGE = ("lcs", "umpa", "mist")
 
 def _read_corrected(g, name, index, flat, dark, corrected):
     return scan_io.correct(g[name][index], flat, dark, corrected)
+
+
+def _read_reference(g, p, flat, dark, corrected, outlier_sigma):
+    """Position p's corrected reference with its spikes repaired (:mod:`pwf_dask.detector`):
+    the coherence fit and the diffuser estimate read every pixel."""
+    return repair_outliers(_read_corrected(g, "reference", p, flat, dark, corrected), outlier_sigma)[0]
 
 
 def _scan_frames(scan_path):
@@ -61,7 +68,9 @@ def _position_diffuser(scan_path, p, reference, attrs, coherence, options, devic
     from .retrieval import estimate_diffuser
 
     chosen = {k: options[k] for k in _DIFFUSER_OPTIONS if k in options}
-    key = (str(scan_path), p, tuple(coherence), device, tuple(sorted(chosen.items())))
+    # the reference's repair threshold is part of the key: it changed the pixels fitted
+    repair = options.get("outlier_sigma", DEFAULT_OUTLIER_SIGMA)
+    key = (str(scan_path), p, tuple(coherence), device, repair, tuple(sorted(chosen.items())))
     with _DIFFUSERS_LOCK:  # threads of one worker wait for the one fit instead of repeating it
         if key not in _DIFFUSERS:
             if len(_DIFFUSERS) >= 8:
@@ -94,7 +103,7 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
         reference = np.stack([_read_corrected(g, "reference", k, flat, dark, corrected) for k in range(npos)])
     else:
         sample = _read_corrected(g, "projections", (p, a), flat, dark, corrected)
-        reference = _read_corrected(g, "reference", p, flat, dark, corrected)
+        reference = _read_reference(g, p, flat, dark, corrected, options.get("outlier_sigma", DEFAULT_OUTLIER_SIGMA))
     xp = resolve_device(device)
     extra = {}
     if options.get("method", "pwf") == "pwf":
@@ -126,6 +135,8 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
     out["attenuation"][p, a] = to_numpy(res.attenuation).astype(np.float32)
     out["converged"][p, a] = bool(res.converged)
     out["residual_rmse"][p, a] = np.float32(res.residual_rmse)
+    if "outlier_pixels" in out:  # stores made before the detector test lack it
+        out["outlier_pixels"][p, a] = np.int32(res.parameters.get("outlier_pixels", 0))
     out["iterations"][p, a] = np.int32(res.iterations)  # last: marks the projection done
     return p, a, res.iterations, res.converged, res.residual_rmse, time.perf_counter() - t0, _peak_rss_mb()
 
@@ -150,15 +161,21 @@ def retrieve_scan(
     alpha=DEFAULT_ALPHA,
     step: float = 1.0,
     precision: str = "single",
+    outlier_sigma: float | None = DEFAULT_OUTLIER_SIGMA,
     runner: Runner | None = None,
     **options,
 ) -> dict:
-    """Retrieval stage: every missing (position, angle) projection, one task each."""
+    """Retrieval stage: every missing (position, angle) projection, one task each.
+
+    ``outlier_sigma`` is the detector-defect threshold of :func:`retrieve_projection`; the
+    references are repaired with it before the coherence fit and the diffuser estimate.
+    """
     import zarr
 
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
     resolve_device(device)  # fail early on --device gpu without CuPy
+    check_threshold(outlier_sigma)
     alpha_c = complex(str(alpha).replace(" ", "")) if not isinstance(alpha, complex) else alpha
     ds, info = scan_io.open_scan(scan_path)
     if info.n_positions < MIN_POSITIONS.get(method, 1):
@@ -170,7 +187,7 @@ def retrieve_scan(
     for p in range(info.n_positions if method == "pwf" else 0):
         cx, cy = info.coherence_length_x_m, info.coherence_length_y_m
         if cx is None or cy is None:
-            ref = _read_corrected(g, "reference", p, flat, dark, corrected)
+            ref = _read_reference(g, p, flat, dark, corrected, outlier_sigma)
             fx, fy = calibration.coherence_lengths(ref, info.pixel_size_m)
             cx = fx if cx is None else cx
             cy = fy if cy is None else cy
@@ -189,6 +206,7 @@ def retrieve_scan(
         "tol": float(tol),
         "max_iter": int(max_iter),
         "precision": precision,
+        "outlier_sigma": float(outlier_sigma or 0),
         "device": device,
         # "n/a": the speckle-tracking baselines use no coherence model
         "coherence_length_x_m": float(np.mean([c[0] for c in coherence])) if method == "pwf" else "n/a",
@@ -217,7 +235,15 @@ def retrieve_scan(
         file=sys.stderr,
     )
     opts = dict(
-        method=method, max_iter=max_iter, tol=tol, gamma=gamma, alpha=alpha_c, step=step, precision=precision, **options
+        method=method,
+        max_iter=max_iter,
+        tol=tol,
+        gamma=gamma,
+        alpha=alpha_c,
+        step=step,
+        precision=precision,
+        outlier_sigma=outlier_sigma,
+        **options,
     )
     t0 = time.perf_counter()
     own = runner is None

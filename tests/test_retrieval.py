@@ -9,13 +9,7 @@ from pwf_dask.stability import Scene, errors
 
 
 def kwargs(sim, **extra):
-    return dict(
-        energy_eV=sim.energy_eV,
-        pixel_size_m=sim.pixel_size_m,
-        sample_diffuser_distance_m=sim.sample_diffuser_distance_m,
-        diffuser_detector_distance_m=sim.diffuser_detector_distance_m,
-        **extra,
-    )
+    return {**sim.geometry(), **extra}
 
 
 def gain(recovered, truth, inside):

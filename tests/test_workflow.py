@@ -100,6 +100,27 @@ def test_resume_refuses_other_parameters(tiny_scan, tmp_path):
         workflow.retrieve_scan(tiny_scan, recon, max_iter=30, tol=0.0)
 
 
+def test_zingers_in_raw_counts_are_counted_per_projection(tiny_scan, tmp_path, capsys):
+    """Saturated single pixels in one raw frame: left out there, counted in ``outlier_pixels``."""
+    scan = tmp_path / "zingers.zarr"
+    shutil.copytree(tiny_scan, scan)
+    g = zarr.open_group(str(scan), mode="r+", use_consolidated=False)
+    frame = g["projections"][1, 4]
+    spots = [(3, 5), (10, 40), (20, 17), (31, 63)]
+    for y, x in spots:
+        frame[y, x] = np.iinfo(frame.dtype).max
+    g["projections"][1, 4] = frame
+    recon = tmp_path / "r.zarr"
+    workflow.retrieve_scan(scan, recon, **FAST)
+    counts = xr.open_zarr(recon)["outlier_pixels"].values
+    assert counts[1, 4] == len(spots)
+    counts[1, 4] = 0
+    assert (counts == 0).all()
+    assert cli.main(["retrieve", str(scan), str(tmp_path / "never.zarr"), "--outlier-sigma", "-1"]) != 0
+    assert "outlier_sigma must be >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "never.zarr").exists()
+
+
 def _broken(src, dst, how):
     shutil.copytree(src, dst)
     g = zarr.open_group(str(dst), mode="r+", use_consolidated=False)

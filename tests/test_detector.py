@@ -1,0 +1,107 @@
+"""Detector defects (zingers, hot and dead pixels): found, left out of PWF's data term, repaired."""
+
+import numpy as np
+import pytest
+
+from pwf_dask import retrieve_projection
+from pwf_dask.detector import find_outliers, repair_outliers
+from pwf_dask.simulation import SpeckleSetup, simulate_projection
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate_projection(SpeckleSetup(shape=(256, 256), photons=1e4), seed=1)
+
+
+def kwargs(sim, **extra):
+    return {**sim.geometry(), **extra}
+
+
+def with_defects(image, seed, n_spikes, n_dead, amplitude=1.0):
+    """Spikes of ``amplitude`` x the mean and dead (zero) pixels at random places, edges included."""
+    rng = np.random.default_rng(seed)
+    out = image.copy()
+    idx = rng.choice(out.size, n_spikes + n_dead, replace=False)
+    idx[0] = 0  # a corner: its neighbours are all inside the frame
+    out.flat[idx[:n_spikes]] += amplitude * image.mean()
+    out.flat[idx[n_spikes:]] = 0.0
+    truth = np.zeros(out.shape, bool)
+    truth.flat[idx] = True
+    return out, truth
+
+
+def relative_phase_error(res, sim) -> float:
+    inside = sim.phase < -0.5
+    return float(np.sqrt(np.mean((res.phase - sim.phase)[inside] ** 2) / np.mean(sim.phase[inside] ** 2)))
+
+
+def test_clean_speckle_images_have_no_outliers(sim):
+    """Speckle peaks are shared with their neighbours (coherence blur, pixel aperture)."""
+    for image in (sim.sample, sim.reference):
+        assert not find_outliers(image).any()
+
+
+def test_spikes_and_dead_pixels_are_found_and_nothing_else(sim):
+    img, truth = with_defects(sim.reference, 0, n_spikes=40, n_dead=10)
+    found = find_outliers(img)
+    np.testing.assert_array_equal(found, truth)
+    repaired, mask = repair_outliers(img)
+    np.testing.assert_array_equal(mask, truth)
+    assert np.array_equal(repaired[~truth], img[~truth])
+    # the neighbours' median is within the speckle's local spread of the true value
+    err = np.abs(repaired[truth] - sim.reference[truth]) / sim.reference.mean()
+    assert np.median(err) < 0.1
+    assert img[truth].tolist() != repaired[truth].tolist()  # the input is not touched
+
+
+def test_stacks_are_repaired_frame_by_frame(sim):
+    a, ta = with_defects(sim.reference, 1, 5, 0)
+    b, tb = with_defects(sim.sample, 2, 0, 5)
+    _, mask = repair_outliers(np.stack([a, b]))
+    np.testing.assert_array_equal(mask, np.stack([ta, tb]))
+
+
+def test_pwf_with_zingers_matches_the_clean_result(sim):
+    """65 zingers of 10x the mean in each image (1e-3 of the pixels): 0.99 relative phase error
+    with every pixel fitted, the clean image's error when they are left out (README)."""
+    clean = relative_phase_error(retrieve_projection(sim.sample, sim.reference, **kwargs(sim)), sim)
+    sample, truth_s = with_defects(sim.sample, 3, 65, 0, amplitude=10.0)
+    reference, truth_r = with_defects(sim.reference, 4, 65, 0, amplitude=10.0)
+    res = retrieve_projection(sample, reference, **kwargs(sim))
+    assert res.parameters["outlier_pixels"] == truth_s.sum()
+    assert res.parameters["outlier_pixels_reference"] == truth_r.sum()
+    assert res.converged
+    assert relative_phase_error(res, sim) < 1.1 * clean + 0.005
+    assert res.residual_rmse < 1.2 * 100 * np.sqrt(np.mean(sim.sample) / sim.photons) / np.mean(sim.reference)
+    raw = retrieve_projection(sample, reference, **kwargs(sim, outlier_sigma=0, max_iter=300))
+    assert raw.parameters["outlier_pixels"] == 0
+    assert relative_phase_error(raw, sim) > 3 * clean
+
+
+def test_off_is_the_model_without_it(sim):
+    """Nothing flagged on a clean scene: the result is bitwise the one with the test off."""
+    on = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=60, tol=0))
+    off = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=60, tol=0, outlier_sigma=None))
+    assert on.parameters["outlier_pixels"] == 0
+    np.testing.assert_array_equal(on.phase, off.phase)
+    np.testing.assert_array_equal(on.attenuation, off.attenuation)
+
+
+def test_tracking_methods_get_repaired_images(sim):
+    sample, _ = with_defects(sim.sample, 5, 20, 0, amplitude=10.0)
+    res = retrieve_projection(sample, sim.reference, **kwargs(sim, method="umpa"))
+    assert res.parameters["outlier_pixels"] == 20
+    assert res.parameters["outlier_pixels_reference"] == 0
+
+
+def test_a_negative_threshold_is_refused(sim):
+    with pytest.raises(ValueError, match="outlier_sigma must be >= 0"):
+        retrieve_projection(sim.sample, sim.reference, **kwargs(sim, outlier_sigma=-1))
+
+
+def test_cupy_finds_and_repairs_the_same_pixels(cupy, sim):
+    img, truth = with_defects(sim.reference, 6, 30, 10)
+    repaired, mask = repair_outliers(cupy.asarray(img))
+    assert isinstance(repaired, cupy.ndarray)
+    np.testing.assert_array_equal(cupy.asnumpy(mask), truth)
+    np.testing.assert_allclose(cupy.asnumpy(repaired), repair_outliers(img)[0], rtol=1e-6)
