@@ -90,6 +90,7 @@ def _simulate(args) -> int:
         raw=not args.corrected,
         rotation_axis_offset_px=args.axis_offset_px,
         diffuser_upstream_m=args.diffuser_upstream_m,
+        zingers=args.zingers,
     )
     print(f"wrote scan {path}")
     return 0
@@ -293,6 +294,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=0.0,
         help="put the diffuser this far upstream of the sample (the scan then has L1 = 0)",
+    )
+    s.add_argument(
+        "--zingers",
+        type=float,
+        default=0.0,
+        help="fraction of the pixels of every frame hit by a zinger (2-20x the open beam), e.g. 1e-4",
     )
     s.set_defaults(func=_simulate)
     i = sub.add_parser("ingest", help="TIFF or HDF5 detector files into a scan store (CONTRACT §1)")

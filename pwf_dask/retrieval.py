@@ -388,7 +388,7 @@ def retrieve_projection(
         phase = bg.zero_background(phase, mask)
         attenuation = bg.zero_background(attenuation, mask)
     res = to_numpy(xp.abs(sol.evaluation.r[model.frame])) * 100.0
-    measured = ~to_numpy(outliers)  # the rms is over the pixels the data term fitted
+    fitted = res[~to_numpy(outliers)] if n_outliers else res  # the rms is over the pixels fitted
     params = {
         "method": method,
         "gamma": gamma,
@@ -430,7 +430,7 @@ def retrieve_projection(
         iterations=iterations,
         converged=sol.converged,
         residual=xp.asarray(res.astype(rdt)),
-        residual_rmse=float(np.sqrt(np.mean(res[measured].astype(np.float64) ** 2))),
+        residual_rmse=float(np.sqrt(np.mean(fitted.astype(np.float64) ** 2))),
         loss_history=history,
         coherence_length_x_m=float(coherence_length_x_m),
         coherence_length_y_m=float(coherence_length_y_m),

@@ -165,6 +165,14 @@ def sandpaper_thickness(
     return np.fft.irfft2(thickness_spec, s=shape)
 
 
+def _geometry(obj) -> dict:
+    return {name: getattr(obj, name) for name in GEOMETRY_KEYS}
+
+
+#: what :func:`pwf_dask.retrieve_projection` must be told about a measurement
+GEOMETRY_KEYS = ("energy_eV", "pixel_size_m", "sample_diffuser_distance_m", "diffuser_detector_distance_m")
+
+
 @dataclass
 class SimulatedProjection:
     """Flat/dark-corrected sample and reference images with the truth behind them."""
@@ -185,12 +193,7 @@ class SimulatedProjection:
 
     def geometry(self) -> dict:
         """The keyword arguments :func:`pwf_dask.retrieve_projection` needs for these images."""
-        return dict(
-            energy_eV=self.energy_eV,
-            pixel_size_m=self.pixel_size_m,
-            sample_diffuser_distance_m=self.sample_diffuser_distance_m,
-            diffuser_detector_distance_m=self.diffuser_detector_distance_m,
-        )
+        return _geometry(self)
 
 
 @dataclass
@@ -215,6 +218,10 @@ class SpeckleSetup:
     #: algorithms then see L1 = 0 and L2 = the sample-detector distance
     #: (``diffuser_detector_distance_m``); the reference is the diffuser over both distances.
     diffuser_upstream_m: float = 0.0
+
+    def geometry(self) -> dict:
+        """The keyword arguments :func:`pwf_dask.retrieve_projection` needs for this set-up."""
+        return _geometry(self)
 
     def __post_init__(self):
         if self.diffuser_upstream_m < 0:
@@ -473,6 +480,7 @@ def simulate_scan(
     raw: bool = True,
     rotation_axis_offset_px: float = 0.0,
     diffuser_upstream_m: float = 0.0,
+    zingers: float = 0.0,
     progress: bool = True,
 ) -> str:
     """Simulate a whole scan into a Zarr store (CONTRACT §1) and return its path.
@@ -482,7 +490,10 @@ def simulate_scan(
     and a dark frame, as a detector delivers them; else flat/dark-corrected float32. The rotation
     axis sits ``rotation_axis_offset_px`` from the frame centre (the tomography stage must
     find it). ``diffuser_upstream_m`` > 0 puts the diffuser that far upstream of the sample
-    (the scan records L1 = 0). The phantom and the truth are recorded in the attributes.
+    (the scan records L1 = 0). ``zingers`` is the fraction of pixels of every frame (sample and
+    reference) hit by a zinger: one pixel gets 2-20x the open-beam counts on top (a scattered
+    X-ray on the sensor; :mod:`pwf_dask.detector`). The phantom and the truth are recorded in
+    the attributes.
     """
     from . import scan_io
 
@@ -498,6 +509,8 @@ def simulate_scan(
             f"simulate: need >= 2 angles, >= 1 position, >= 32 x 32 px, photons > 0; got "
             f"{n_ang}, {n_pos}, {shape}, {photons}"
         )
+    if not 0 <= zingers < 0.1:
+        raise ValueError(f"simulate: zingers is a fraction of the pixels in [0, 0.1), got {zingers}")
     setup = SpeckleSetup(shape=shape, photons=photons)
     if diffuser_upstream_m:
         setup = replace(setup, sample_diffuser_distance_m=0.0, diffuser_upstream_m=diffuser_upstream_m)
@@ -519,6 +532,7 @@ def simulate_scan(
         "simulation_coherence_length_y_m": setup.coherence_length_y_m,
         "simulation_rotation_axis_offset_m": setup.rotation_axis_offset_m,
         "simulation_diffuser_upstream_m": setup.diffuser_upstream_m,
+        "simulation_zingers": zingers,
         "simulation_phantom": phantom_to_json(phantom),
     }
     dtype = "uint16" if raw else "float32"
@@ -541,10 +555,22 @@ def simulate_scan(
         g["flat"][...] = np.round(beam * photons + dark_level).astype(np.uint16)
         g["dark"][...] = np.full(shape, dark_level, np.uint16)
 
+    # its own stream, so that a scan without zingers is the scan simulated before they existed
+    zinger_rng = np.random.default_rng(seed + 13)
+    n_zingers = int(round(zingers * ny * nx))
+
+    def add_zingers(frame, level):
+        hit = zinger_rng.choice(frame.size, n_zingers, replace=False)
+        frame.flat[hit] += zinger_rng.uniform(2.0, 20.0, n_zingers) * level
+        return frame
+
     def detect(intensity):
         if not raw:
-            return (noise_rng.poisson(np.clip(intensity, 0, None) * photons) / photons).astype(np.float32)
+            img = (noise_rng.poisson(np.clip(intensity, 0, None) * photons) / photons).astype(np.float32)
+            return add_zingers(img, 1.0) if n_zingers else img
         counts = noise_rng.poisson(np.clip(intensity, 0, None) * beam * photons) + dark_level
+        if n_zingers:
+            counts = add_zingers(counts.astype(np.float64), photons)
         return np.clip(counts, 0, 65535).astype(np.uint16)
 
     total = n_pos * n_ang

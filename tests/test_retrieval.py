@@ -284,7 +284,7 @@ def test_thick_rod_goes_on_a_finer_grid_and_holds():
     scene = Scene(base, phantom, 30 * np.pi / np.abs(thin.phase).max(), 1, 0)
     s, r = scene.images(1e4, 1, seed=7)
     kw = kwargs(
-        base,  # a SpeckleSetup carries the same geometry fields as a simulated projection
+        base,  # a SpeckleSetup has geometry() as a simulated projection has
         coherence_length_x_m=base.coherence_length_x_m,
         coherence_length_y_m=base.coherence_length_y_m,
         background_mask=scene.background,

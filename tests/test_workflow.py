@@ -121,6 +121,23 @@ def test_zingers_in_raw_counts_are_counted_per_projection(tiny_scan, tmp_path, c
     assert not (tmp_path / "never.zarr").exists()
 
 
+def test_simulated_zingers_are_left_out_where_isolated(tmp_path):
+    """``simulate --zingers``: the scan is the one without them except at the zingers (their own
+    random stream), and every isolated zinger is found; two touching ones hide each other."""
+    from scipy import ndimage
+
+    clean, scan, recon = tmp_path / "c.zarr", tmp_path / "z.zarr", tmp_path / "r.zarr"
+    argv = ["--shape", "32", "64", "--angles", "3", "--positions", "1"]
+    assert cli.main(["simulate", str(clean), *argv]) == 0
+    assert cli.main(["simulate", str(scan), *argv, "--zingers", str(10 / (32 * 64))]) == 0
+    hit = zarr.open_group(str(scan))["projections"][0] != zarr.open_group(str(clean))["projections"][0]
+    assert (hit.sum(axis=(1, 2)) == 10).all()
+    touching = np.stack([ndimage.convolve(h.astype(int), np.ones((3, 3), int), mode="constant") > 1 for h in hit])
+    workflow.retrieve_scan(scan, recon, max_iter=5, tol=0.0)
+    found = xr.open_zarr(recon)["outlier_pixels"].values[0]
+    np.testing.assert_array_equal(found, (hit & ~touching).sum(axis=(1, 2)))
+
+
 def _broken(src, dst, how):
     shutil.copytree(src, dst)
     g = zarr.open_group(str(dst), mode="r+", use_consolidated=False)
