@@ -263,11 +263,6 @@ def retrieve_projection(
     ref = _check_image("reference", reference, xp)
     if y.shape != ref.shape:
         raise ValueError(f"sample {y.shape} and reference {ref.shape} differ in shape")
-    # spikes: the reference is repaired (the diffuser estimate needs every pixel), the
-    # sample's are left out of the data term (and repaired for the statistics that read it)
-    ref, ref_outliers = repair_outliers(ref, outlier_sigma)
-    y, outliers = repair_outliers(y, outlier_sigma)
-    n_outliers = int(outliers.sum())
     if not pixel_size_m > 0:
         raise ValueError(f"pixel_size_m must be positive, got {pixel_size_m}")
     if sample_diffuser_distance_m < 0 or not diffuser_detector_distance_m > 0:
@@ -283,6 +278,11 @@ def retrieve_projection(
         raise ValueError(f"initial psi has shape {tuple(initial.shape)}, the image {tuple(y.shape)}")
     if field_upsample != "auto" and not (str(field_upsample).isdigit() and int(field_upsample) >= 1):
         raise ValueError(f"field_upsample must be 'auto' or an integer >= 1, got {field_upsample!r}")
+    # spikes: the reference is repaired (the diffuser estimate needs every pixel), the
+    # sample's are left out of the data term (and repaired for the statistics that read it)
+    ref, ref_outliers = repair_outliers(ref, outlier_sigma)
+    y, outliers = repair_outliers(y, outlier_sigma)
+    n_outliers = int(outliers.sum())
     wavelength = optics.wavelength_m(energy_eV)
     calibrated = coherence_length_x_m is None or coherence_length_y_m is None
     if calibrated:
