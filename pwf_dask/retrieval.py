@@ -528,6 +528,7 @@ def _initial_psi(initial, sample, reference, model, energy_eV, pixel_size_m, dif
             energy_eV=energy_eV,
             pixel_size_m=pixel_size_m,
             diffuser_detector_distance_m=diffuser_detector_distance_m,
+            outlier_sigma=None,  # the caller has repaired both images already
             **(options or {}),
         )
         psi = -to_numpy(start.attenuation).astype(np.float64) + 1j * to_numpy(start.phase).astype(np.float64)
