@@ -20,6 +20,26 @@ from .materials import delta_beta
 
 METHODS = ("pwf", "umpa", "lcs", "gf", "mist")
 
+#: The choices of the authors' released MATLAB code (kyeoreh/preconditioned_Wirtinger_flow,
+#: ``PWF.m``), as options of :func:`retrieve_projection`, for side-by-side runs: zero-phase
+#: diffuser, N_t = (max|t|^2)^2, eta = 1 fixed, Nesterov never restarted, stop at the first
+#: pass of the field-correlation rule (the released code tests every 10th iteration), at most
+#: 5000 iterations, psi on the detector grid. Not reproduced: its resampling of the images to
+#: a pixel of 1/(6 sigma_I) and the Tukey taper of the data term over its padding.
+AUTHORS_RELEASE: dict[str, Any] = dict(
+    diffuser_model="zero-phase",
+    normalization="released",
+    step=1.0,
+    step_search=False,
+    restart="none",
+    min_iter=1,
+    patience=1,
+    rtol=0.0,
+    jtol=0.0,
+    max_iter=5000,
+    field_upsample=1,
+)
+
 
 @dataclass
 class RetrievalResult:
@@ -203,6 +223,7 @@ def retrieve_projection(
     zero_background: bool = True,
     normalization: str = "paper",
     step_search: bool = True,
+    restart: str = "gradient",
     phase_scale: float | str = 1.0,
     fft_workers: int | None = None,
     tracking_options: dict | None = None,
@@ -236,7 +257,9 @@ def retrieve_projection(
     the detector-grid solution when its phase gradient exceeds
     :data:`FIELD_UPSAMPLE_GRADIENT_RAD_PER_PX` (thick samples), 1 is the paper's model.
     ``initial`` starts Algorithm S1 from zero (the paper), from UMPA's one-image estimate
-    (``"umpa"``), or from a given complex psi of the image's shape.
+    (``"umpa"``), or from a given complex psi of the image's shape. ``restart`` is the
+    momentum rule of :func:`pwf_dask.solver.pwf` (``"none"``: Algorithm S1 as printed);
+    :data:`AUTHORS_RELEASE` holds the choices of the authors' released code.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
@@ -276,6 +299,8 @@ def retrieve_projection(
         raise ValueError(f"unknown initial {initial!r}: choose 'zero', 'umpa' or pass psi")
     if not isinstance(initial, str) and tuple(initial.shape) != tuple(y.shape):
         raise ValueError(f"initial psi has shape {tuple(initial.shape)}, the image {tuple(y.shape)}")
+    if restart not in solver.RESTARTS:
+        raise ValueError(f"unknown restart {restart!r}: choose one of {', '.join(solver.RESTARTS)}")
     if field_upsample != "auto" and not (str(field_upsample).isdigit() and int(field_upsample) >= 1):
         raise ValueError(f"field_upsample must be 'auto' or an integer >= 1, got {field_upsample!r}")
     # spikes: the reference is repaired (the diffuser estimate needs every pixel), the
@@ -360,6 +385,7 @@ def retrieve_projection(
         min_iter=min_iter,
         patience=patience,
         step_search=step_search,
+        restart=restart,
         rtol=rtol,
         jtol=jtol,
     )
@@ -395,6 +421,7 @@ def retrieve_projection(
         "alpha": str(complex(alpha)).strip("()"),
         "step": step,
         "step_search": step_search,
+        "restart": restart,
         "phase_scale": model.phase_scale,
         "step_final": sol.step,
         "tol": tol,

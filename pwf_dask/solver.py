@@ -55,6 +55,9 @@ PAPER_TOL = 1.0 - 10.0 ** (-0.00001)
 DEFAULT_ALPHA = 0.1 + 0.01j
 STRONG_FEATURE_ALPHA = 0.1 + 0.05j
 
+#: Momentum restart rules of :func:`pwf`; ``"none"`` is plain Algorithm S1.
+RESTARTS = ("gradient", "function", "none")
+
 
 @dataclass
 class PWFModel:
@@ -628,10 +631,12 @@ def pwf(
     rise of J. J is evaluated at the extrapolated point, where it oscillates while the
     iterates still converge, so the function rule restarts every few iterations and loses
     the acceleration: on a 256 x 256 frame with coherence lengths 15 % short its relative
-    phase error after 500 iterations was 0.48, the gradient rule's 0.10.
+    phase error after 500 iterations was 0.48, the gradient rule's 0.10. ``"none"`` is
+    Algorithm S1 as printed: J is still evaluated (for the history) but never decides
+    anything: no restart, no rejected step, and a non-finite J ends the run (diverged).
     """
-    if restart not in ("gradient", "function"):
-        raise ValueError(f"restart must be 'gradient' or 'function', got {restart!r}")
+    if restart not in RESTARTS:
+        raise ValueError(f"restart must be one of {', '.join(RESTARTS)}, got {restart!r}")
     xp = model.xp
     psi = xp.zeros(model.shape, dtype=model.cdtype) if psi0 is None else xp.asarray(psi0, dtype=model.cdtype)
     eta = float(step)
@@ -679,11 +684,13 @@ def pwf(
             reason = "non-finite objective"
             if last is None:
                 raise FloatingPointError("PWF objective is not finite at the first iterate")
+            if restart == "none":
+                break  # plain Algorithm S1 has no way back: it diverged
             j = math.inf
         # function restart: J above the last accepted value; gradient restart tolerates J(y)
         # oscillating inside a momentum run as long as it stays below the run's start
         rose = False
-        if last is not None:
+        if last is not None and restart != "none":
             ref_j = anchor_j if (restart == "gradient" and momentum_used) else last[1]
             rose = j > ref_j * (1.0 + rise_tol)
         if rose:

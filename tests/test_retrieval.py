@@ -197,6 +197,7 @@ def test_upstream_diffuser_reference_propagates_over_both_distances():
         (dict(diffuser_detector_distance_m=0.0), "distances"),
         (dict(method="magic"), "unknown method"),
         (dict(initial="random"), "unknown initial"),
+        (dict(restart="sometimes"), "unknown restart"),
         (dict(field_upsample=0), "field_upsample"),
         (dict(field_upsample="fine"), "field_upsample"),
         (dict(initial=np.zeros((8, 8), complex)), "initial psi has shape"),

@@ -197,3 +197,25 @@ def test_threaded_complex_exp_is_bitwise_the_serial_one():
     serial = complex_exp(z)
     assert np.array_equal(complex_exp(z, workers=3).view(np.float32), serial.view(np.float32))
     np.testing.assert_allclose(serial, np.exp(z.astype(np.complex128)), rtol=1e-6)
+
+
+@pytest.mark.parametrize("l1", [3e-3, 0.0])
+def test_direction_equals_algorithm_s2_as_printed(rng, l1):
+    """The solver's fused, real-FFT direction is Algorithm S2 transcribed line by line."""
+    from pwf_dask.bench import algorithm_s1_direction, algorithm_s1_inputs
+
+    model, y = make_model(rng, l1=l1)
+    psi = 0.1 * (rng.normal(size=model.shape) + 1j * rng.normal(size=model.shape))
+    _, d, _ = solver.objective_and_direction(psi, y, model)
+    printed = algorithm_s1_direction(psi, y, **algorithm_s1_inputs(model, 0.65e-6, 2.0e-6, 2.4e-6))
+    assert np.abs(d - printed).max() < 1e-10 * np.abs(printed).max()
+
+
+def test_plain_algorithm_s1_diverges_where_the_safe_step_does_not(rng):
+    """``restart="none"`` is Algorithm S1 as printed: with far too long a step it runs to a
+    non-finite objective and stops there, returning its last finite iterate."""
+    model, y = make_model(rng, precision="single")
+    sol = solver.pwf(y.astype(np.float32), model, step=1000.0, max_iter=60, tol=0, restart="none")
+    assert sol.stop_reason == "non-finite objective" and sol.iterations < 60
+    assert sol.restarts == 0 and sol.backtracks == 0
+    assert np.all(np.isfinite(sol.psi))
