@@ -9,9 +9,8 @@ relative phase error from 0.049 to 0.085, 65 of them to 0.47 (README, Detector d
 The test is the one a band-limited speckle image allows. The coherence blur (IOTF) and the
 pixel aperture make every physical intensity peak or dip shared by its neighbours, so a
 pixel is a defect when it stands above the largest of its 8 neighbours, or below the
-smallest, by more than ``threshold_sigma`` robust noise sigmas. The sigma is the median
-absolute deviation of the image from its neighbourhood median (1.4826 MAD), which the
-photon noise dominates. Clusters of two or more bright pixels are not caught (each has a
+smallest, by more than ``threshold_sigma`` robust noise sigmas (:func:`noise_sigma`, which
+the photon noise dominates). Clusters of two or more bright pixels are not caught (each has a
 bright neighbour); the measured false alarms are in README.md.
 """
 
@@ -35,21 +34,20 @@ def check_threshold(threshold_sigma: float | None) -> None:
         raise ValueError(f"outlier_sigma must be >= 0 (0 or None: keep every pixel), got {threshold_sigma}")
 
 
-def ndimage_for(xp: ModuleType) -> ModuleType:
-    """scipy.ndimage for NumPy arrays, cupyx.scipy.ndimage for CuPy arrays."""
-    if xp is np:
-        from scipy import ndimage
+def _neighbours(image, xp: ModuleType) -> list:
+    """The 8 neighbours of every pixel as shifted views of one edge-mirrored copy.
 
-        return ndimage
-    from cupyx.scipy import ndimage
+    Element-wise maxima, minima and sums over these views give exactly what
+    scipy.ndimage's 3 x 3 ring filters (mode "mirror") give, 2-3x faster: measured at
+    2160 x 2560, 0.06 s against 0.19 s for the maximum, and no filter machinery on CuPy.
+    """
+    ny, nx = image.shape
+    padded = xp.pad(image, 1, mode="reflect")  # numpy's "reflect" is ndimage's "mirror"
+    return [padded[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
 
-    return ndimage
 
-
-def _ring(xp: ModuleType):
-    ring = np.ones((3, 3), dtype=bool)
-    ring[1, 1] = False
-    return xp.asarray(ring)
+#: Immerkaer's 3 x 3 kernel, the outer product of second differences [1, -2, 1]
+_IMMERKAER = np.outer([1.0, -2.0, 1.0], [1.0, -2.0, 1.0])
 
 
 def noise_sigma(image) -> float:
@@ -59,12 +57,14 @@ def noise_sigma(image) -> float:
     [[1, -2, 1], [-2, 4, -2], [1, -2, 1]] has the response 16 sin^2(pi u) sin^2(pi v), so it
     removes band-limited speckle (and any quadratic surface) and keeps white noise with gain
     6; 1.4826 x the median absolute value of its output then reads the noise sigma where a
-    mean would read the spikes' energy.
+    mean would read the spikes' energy. It is read on every other interior pixel in each
+    direction (a quarter of the image reads a median as well), from strided views.
     """
     xp = get_array_module(image)
-    nd = ndimage_for(xp)
-    kernel = xp.asarray(np.outer([1.0, -2.0, 1.0], [1.0, -2.0, 1.0]).astype(np.float32))
-    d = nd.convolve(image, kernel, mode="mirror")[1:-1:2, 1:-1:2]  # a quarter of the pixels reads a median as well
+    ny, nx = image.shape
+    d = sum(
+        image[a : ny - 2 + a : 2, b : nx - 2 + b : 2] * np.float32(_IMMERKAER[a, b]) for a in range(3) for b in range(3)
+    )
     return float(1.4826 * xp.median(xp.abs(d))) / 6.0
 
 
@@ -84,17 +84,19 @@ def find_outliers(image, threshold_sigma: float | None = DEFAULT_OUTLIER_SIGMA, 
         raise ValueError(f"find_outliers takes one 2-D image, got shape {tuple(img.shape)}")
     if not threshold_sigma:
         return xp.zeros(img.shape, dtype=bool)
-    nd = ndimage_for(xp)
-    ring = _ring(xp)
     work = img.astype(xp.float32, copy=False)
     sigma = noise_sigma(work)
     if not sigma > 0:  # a flat or synthetic image: nothing is noise-like, so nothing is a spike
         return xp.zeros(img.shape, dtype=bool)
-    neighbour_mean = nd.convolve(work, ring.astype(xp.float32) / 8, mode="mirror")
-    limit = xp.maximum(threshold_sigma * sigma, floor * neighbour_mean)
-    above = work - nd.maximum_filter(work, footprint=ring, mode="mirror") > limit
-    below = nd.minimum_filter(work, footprint=ring, mode="mirror") - work > limit
-    return above | below
+    first, *rest = _neighbours(work, xp)
+    largest, smallest, total = first.copy(), first.copy(), first.copy()
+    for view in rest:
+        xp.maximum(largest, view, out=largest)
+        xp.minimum(smallest, view, out=smallest)
+        total += view
+    total *= np.float32(floor / 8)  # the floor times the neighbours' mean
+    limit = xp.maximum(total, np.float32(threshold_sigma * sigma))
+    return ((work - largest) > limit) | ((smallest - work) > limit)
 
 
 def repair_outliers(image, threshold_sigma: float | None = DEFAULT_OUTLIER_SIGMA):
@@ -116,8 +118,7 @@ def repair_outliers(image, threshold_sigma: float | None = DEFAULT_OUTLIER_SIGMA
         return img, outliers
     # the median of the 8 neighbours, at the flagged pixels only
     rows, cols = xp.nonzero(outliers)
-    padded = xp.pad(img, 1, mode="reflect")  # numpy's "reflect" leaves the edge pixel out
-    neighbours = xp.stack([padded[rows + 1 + dy, cols + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
+    neighbours = xp.stack([view[rows, cols] for view in _neighbours(img, xp)])
     repaired = img.copy()
     repaired[rows, cols] = xp.median(neighbours, axis=0).astype(img.dtype, copy=False)
     return repaired, outliers

@@ -55,6 +55,10 @@ PAPER_TOL = 1.0 - 10.0 ** (-0.00001)
 DEFAULT_ALPHA = 0.1 + 0.01j
 STRONG_FEATURE_ALPHA = 0.1 + 0.05j
 
+#: A gradient restart after two steps psi_k - psi_{k-1} this anti-aligned (cosine below it)
+#: was caused by a mode too stiff for eta (see :func:`pwf`, "Step"): eta is halved.
+STIFF_COSINE = -0.5
+
 #: Momentum restart rules of :func:`pwf`; ``"none"`` is plain Algorithm S1.
 RESTARTS = ("gradient", "function", "none")
 
@@ -622,7 +626,18 @@ def pwf(
 
     Step: ``step`` is eta of Algorithm S1; with ``step_search`` it is first doubled along the
     first direction while J falls (:func:`initial_step`). J rising after a plain step halves
-    eta and the rejected point is discarded.
+    eta and the rejected point is discarded. Plain steps descend for eta L < 2 (L the largest
+    curvature in the metric), Nesterov's iteration only for eta L < 4/3 as its momentum
+    factor beta nears 1: between the two, the stiffest mode's iteration has a real eigenvalue
+    below -1 once beta > (1/(eta L - 1) - 1)/2, so it flips sign every step and grows, the
+    gradient restart cuts the run, and the runs shorten as beta's threshold falls (measured:
+    139, 43, 12, 10, ... down to 4 iterations, 1000 iterations without converging, on a
+    256 x 256 frame whose beam was 5 % weaker than the reference's). A doubling search lands
+    anywhere in [1/L, 2/L) along its direction, so this case is common. Its signature is
+    successive steps pointing opposite ways at the restart (cosine < :data:`STIFF_COSINE`,
+    measured -0.65 to -0.95 there, while restarts of the slow modes' overshoot have positive
+    cosines); such a restart halves eta, unless eta was halved at the restart before (the
+    oscillation that ends the run after a halving grew at the longer step).
 
     Momentum restart (``restart``): ``"gradient"`` (default, O'Donoghue & Candes 2015) drops
     the momentum when it points uphill, Re<d, phi_k - phi_{k-1}> > 0, and tolerates J at the
@@ -652,22 +667,26 @@ def pwf(
     run_best, stalled = math.inf, 0
     # long on purpose: 20 iterations cut productive runs at 1e3 ph/px (error 0.42 for 0.06)
     stall_limit = 5 * window
-    run = short = 0  # iterations since the last momentum restart; short runs in a row
+    halved = False  # eta was halved at the last momentum restart
+    recent_steps: list = []  # the last two accepted steps psi_k - psi_{k-1}
 
     def restart_momentum():
-        """Count a momentum restart; under the gradient rule, three momentum runs in a row of
-        at most 3 iterations mean the stiffest mode oscillates: eta is too long for it (the
-        doubling search can overshoot it), so halve it."""
-        nonlocal restarts, run, short, eta, backtracks
+        """Count a momentum restart; under the gradient rule, halve eta when a stiff mode
+        caused it (:data:`STIFF_COSINE`), unless eta was halved at the restart before: that
+        run's oscillation grew at the longer step."""
+        nonlocal restarts, halved, eta, backtracks
         restarts += 1
-        if restart != "gradient":
+        if restart != "gradient" or len(recent_steps) < 2:
             return
-        short = short + 1 if run <= 3 else 0
-        run = 0
-        if short >= 3:
+        if halved:
+            halved = False
+            return
+        before, now = recent_steps
+        cosine = inner(before, now).real / math.sqrt(inner(before, before).real * inner(now, now).real or 1.0)
+        if cosine < STIFF_COSINE:
             eta *= 0.5
             backtracks += 1
-            short = 0
+            halved = True
 
     # J is summed in float64 from residuals rounded to the working precision: a rise
     # smaller than that rounding is noise, not a failed step
@@ -709,6 +728,7 @@ def pwf(
         else:
             if last is not None:
                 dpsi = psi - last[0]
+                recent_steps = [*recent_steps[-1:], dpsi]
                 steps.append(math.sqrt(inner(dpsi, dpsi).real / dpsi.size))
                 x_norm = math.sqrt(inner(ev.x, ev.x).real)
                 corr = abs(inner(last[3].x, ev.x)) / (x_norm * last_x_norm)
@@ -743,7 +763,6 @@ def pwf(
         mu_prev = mu
         mu = 0.5 * (1.0 + math.sqrt(1.0 + 4.0 * mu * mu))
         beta = (mu_prev - 1.0) / mu
-        run += 1
         dphi = phi - phi_prev
         if restart == "gradient" and beta > 0 and (inner(d, dphi).real > 0 or stalled >= stall_limit):
             # the momentum points uphill along the (preconditioned) gradient at psi, or has

@@ -2,9 +2,10 @@
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from pwf_dask import retrieve_projection
-from pwf_dask.detector import find_outliers, repair_outliers
+from pwf_dask.detector import _neighbours, find_outliers, noise_sigma, repair_outliers
 from pwf_dask.simulation import SpeckleSetup, simulate_projection
 
 
@@ -33,6 +34,22 @@ def with_defects(image, seed, n_spikes, n_dead, amplitude=1.0):
 def relative_phase_error(res, sim) -> float:
     inside = sim.phase < -0.5
     return float(np.sqrt(np.mean((res.phase - sim.phase)[inside] ** 2) / np.mean(sim.phase[inside] ** 2)))
+
+
+def test_neighbour_views_equal_the_ndimage_ring_filters(rng):
+    """The shifted views give scipy.ndimage's 3 x 3 ring maximum, minimum and mean (mode
+    "mirror", edges and corners included), and Immerkaer's sigma its convolution's."""
+    img = rng.random((37, 52)).astype(np.float32)
+    ring = np.ones((3, 3), bool)
+    ring[1, 1] = False
+    views = _neighbours(img, np)
+    np.testing.assert_array_equal(np.max(views, axis=0), ndimage.maximum_filter(img, footprint=ring, mode="mirror"))
+    np.testing.assert_array_equal(np.min(views, axis=0), ndimage.minimum_filter(img, footprint=ring, mode="mirror"))
+    mean = ndimage.convolve(img.astype(np.float64), ring / 8.0, mode="mirror")
+    np.testing.assert_allclose(np.mean(views, axis=0), mean, rtol=1e-6)
+    kernel = np.outer([1.0, -2.0, 1.0], [1.0, -2.0, 1.0])
+    d = ndimage.convolve(img.astype(np.float64), kernel, mode="mirror")[1:-1:2, 1:-1:2]
+    assert noise_sigma(img) == pytest.approx(1.4826 * np.median(np.abs(d)) / 6.0, rel=1e-5)
 
 
 def test_clean_speckle_images_have_no_outliers(sim):
