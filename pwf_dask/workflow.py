@@ -76,7 +76,7 @@ def _position_diffuser(scan_path, p, reference, attrs, coherence, options, devic
             if len(_DIFFUSERS) >= 8:
                 _DIFFUSERS.pop(next(iter(_DIFFUSERS)))
             _DIFFUSERS[key] = estimate_diffuser(
-                reference,
+                repair_outliers(reference, repair)[0],  # the fit reads every pixel
                 energy_eV=float(attrs["energy_eV"]),
                 pixel_size_m=float(attrs["pixel_size_m"]),
                 diffuser_detector_distance_m=float(attrs["diffuser_detector_distance_m"]),
@@ -103,7 +103,9 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
         reference = np.stack([_read_corrected(g, "reference", k, flat, dark, corrected) for k in range(npos)])
     else:
         sample = _read_corrected(g, "projections", (p, a), flat, dark, corrected)
-        reference = _read_reference(g, p, flat, dark, corrected, options.get("outlier_sigma", DEFAULT_OUTLIER_SIGMA))
+        # as read: retrieve_projection repairs its spikes, and the diffuser fit (once per
+        # position and worker) repairs its own copy
+        reference = _read_corrected(g, "reference", p, flat, dark, corrected)
     xp = resolve_device(device)
     extra = {}
     if options.get("method", "pwf") == "pwf":
