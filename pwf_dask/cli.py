@@ -91,6 +91,7 @@ def _simulate(args) -> int:
         rotation_axis_offset_px=args.axis_offset_px,
         diffuser_upstream_m=args.diffuser_upstream_m,
         zingers=args.zingers,
+        diffuser_drift_px=tuple(args.diffuser_drift_px),
     )
     print(f"wrote scan {path}")
     return 0
@@ -141,6 +142,7 @@ def _retrieval_kwargs(args) -> dict:
         sample_material=args.sample_material,
         sample_delta_over_beta=args.sample_delta_over_beta,
         outlier_sigma=args.outlier_sigma,
+        diffuser_drift=args.diffuser_drift,
     )
 
 
@@ -274,6 +276,12 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
         help="detector defects: single-pixel spikes and dips (zingers, hot/dead pixels) beyond this many noise "
         "sigmas of all their neighbours are left out (sample) or repaired (reference); 0 keeps every pixel",
     )
+    p.add_argument(
+        "--diffuser-drift",
+        default="auto",
+        help="pwf: move the diffuser estimate to where the speckle drifted since the reference: auto (measure "
+        "it per frame, correct from 0.05 px), off, or DY,DX in pixels",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -300,6 +308,14 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=0.0,
         help="fraction of the pixels of every frame hit by a zinger (2-20x the open beam), e.g. 1e-4",
+    )
+    s.add_argument(
+        "--diffuser-drift-px",
+        type=float,
+        nargs=2,
+        default=(0.0, 0.0),
+        metavar=("DY", "DX"),
+        help="the diffuser drifts linearly from its reference position to (DY, DX) pixels at the last angle",
     )
     s.set_defaults(func=_simulate)
     i = sub.add_parser("ingest", help="TIFF or HDF5 detector files into a scan store (CONTRACT §1)")

@@ -189,6 +189,41 @@ def _diffuser_kappa(model: str, material: str, beta_over_delta: float | None, en
     return b / d
 
 
+#: Smallest measured drift (pixels, either axis) that ``diffuser_drift="auto"`` corrects on a
+#: large frame: 0.05 px moves the phase error less than a new noise draw does, so a still
+#: diffuser leaves the model exactly the paper's. Small frames hold fewer grains and the
+#: estimate scatters more (measured at most ~4 / sqrt(pixels): 0.02 at 256^2, 0.08 at 32 x 64),
+#: so the threshold is twice that where larger (:func:`drift_threshold_px`).
+DRIFT_MIN_PX = 0.05
+#: Frame strips the drift brought in from outside the reference are left out of the data term,
+#: widened by this many pixels: the speckle there also depends on its neighbours' t_r (L2's
+#: Fresnel spread, sqrt(lambda L2) = 2.4 px at the paper's set-up).
+DRIFT_MARGIN_PX = 2
+
+
+def drift_threshold_px(frame_shape: tuple[int, int]) -> float:
+    """The drift ``diffuser_drift="auto"`` corrects from: :data:`DRIFT_MIN_PX`, or twice the
+    estimate's scatter on a frame of this many pixels where that is larger."""
+    return max(DRIFT_MIN_PX, 8.0 / float(np.sqrt(frame_shape[0] * frame_shape[1])))
+
+
+def check_diffuser_drift(diffuser_drift) -> tuple[float, float] | None:
+    """A given (dy, dx) drift as floats (also from "DY,DX"), None for "auto" and "off";
+    anything else is refused with one line."""
+    if isinstance(diffuser_drift, str) and diffuser_drift in ("auto", "off"):
+        return None
+    values = diffuser_drift.split(",") if isinstance(diffuser_drift, str) else diffuser_drift
+    try:
+        dy, dx = (float(v) for v in values)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"diffuser_drift must be 'auto', 'off' or a (dy, dx) pair in pixels, got {diffuser_drift!r}"
+        ) from None
+    if not (np.isfinite(dy) and np.isfinite(dx)):
+        raise ValueError(f"diffuser_drift must be finite, got ({dy}, {dx})")
+    return dy, dx
+
+
 def retrieve_projection(
     sample,
     reference,
@@ -232,6 +267,7 @@ def retrieve_projection(
     initial: Any = "zero",
     field_upsample: int | str = "auto",
     outlier_sigma: float | None = DEFAULT_OUTLIER_SIGMA,
+    diffuser_drift: str | tuple[float, float] = "auto",
 ) -> RetrievalResult:
     """Retrieve phase and attenuation from one flat/dark-corrected speckle image (CONTRACT §4).
 
@@ -260,6 +296,13 @@ def retrieve_projection(
     (``"umpa"``), or from a given complex psi of the image's shape. ``restart`` is the
     momentum rule of :func:`pwf_dask.solver.pwf` (``"none"``: Algorithm S1 as printed);
     :data:`AUTHORS_RELEASE` holds the choices of the authors' released code.
+
+    ``diffuser_drift`` (not in the paper) moves t_r to where the diffuser was when the
+    sample frame was taken: ``"auto"`` measures the speckle's global shift against the
+    reference (:func:`pwf_dask.calibration.speckle_drift_px`) and moves t_r when it reaches
+    :func:`drift_threshold_px` (0.05 px on frames from 160^2), leaving out of the data term the
+    strips whose grains came from outside the reference; ``"off"`` never; a (dy, dx) pair in
+    pixels moves it by that.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
@@ -301,6 +344,7 @@ def retrieve_projection(
         raise ValueError(f"initial psi has shape {tuple(initial.shape)}, the image {tuple(y.shape)}")
     if restart not in solver.RESTARTS:
         raise ValueError(f"unknown restart {restart!r}: choose one of {', '.join(solver.RESTARTS)}")
+    drift_given = check_diffuser_drift(diffuser_drift)
     if field_upsample != "auto" and not (str(field_upsample).isdigit() and int(field_upsample) >= 1):
         raise ValueError(f"field_upsample must be 'auto' or an integer >= 1, got {field_upsample!r}")
     # spikes: the reference is repaired (the diffuser estimate needs every pixel), the
@@ -349,6 +393,19 @@ def retrieve_projection(
         t = xp.asarray(diffuser)
         if t.shape != shape:
             raise ValueError(f"diffuser has shape {t.shape}, the computational grid is {shape} (pad {pad})")
+    drift = (0.0, 0.0)
+    if drift_given is not None:
+        drift = drift_given
+    elif diffuser_drift == "auto":
+        drift = calibration.speckle_drift_px(y, ref, fft=fft)
+    largest = max(abs(drift[0]), abs(drift[1]))
+    moved = largest > 0 if drift_given is not None else largest >= drift_threshold_px((ny, nx))
+    excluded = outliers if n_outliers else None
+    if moved:
+        t = calibration.shift_transmission(t, drift, fft=fft)
+        # the grains that drifted into the frame were never in the reference
+        unseen = xp.asarray(calibration.unseen_by_reference((ny, nx), drift, DRIFT_MARGIN_PX))
+        excluded = unseen if excluded is None else excluded | unseen
     build = partial(
         solver.build_model,
         t,
@@ -368,7 +425,7 @@ def retrieve_projection(
         precision=precision,
         normalization=normalization,
         phase_scale=phase_scale,
-        bad_pixels=outliers if n_outliers else None,
+        bad_pixels=excluded,
         fft=fft,
     )
     auto_field = field_upsample == "auto"
@@ -411,10 +468,11 @@ def retrieve_projection(
             if background_mask is not None
             else bg.detect_background(phase, attenuation)
         )
-        phase = bg.zero_background(phase, mask)
-        attenuation = bg.zero_background(attenuation, mask)
+        fit = mask if not moved else mask & ~to_numpy(unseen)  # the strips' psi is the regularizer's guess
+        phase = bg.zero_background(phase, fit)
+        attenuation = bg.zero_background(attenuation, fit)
     res = to_numpy(xp.abs(sol.evaluation.r[model.frame])) * 100.0
-    fitted = res[~to_numpy(outliers)] if n_outliers else res  # the rms is over the pixels fitted
+    fitted = res[~to_numpy(excluded)] if excluded is not None else res  # the rms is over the pixels fitted
     params = {
         "method": method,
         "gamma": gamma,
@@ -450,6 +508,9 @@ def retrieve_projection(
         "outlier_sigma": outlier_sigma,
         "outlier_pixels": n_outliers,
         "outlier_pixels_reference": int(ref_outliers.sum()),
+        "diffuser_drift": diffuser_drift if isinstance(diffuser_drift, str) else "given",
+        "diffuser_drift_px": [float(drift[0]), float(drift[1])],
+        "diffuser_moved": bool(moved),
     }
     return RetrievalResult(
         phase=xp.asarray(phase.astype(rdt)),

@@ -298,12 +298,22 @@ class SpeckleSimulator:
             self.fine_shape, self.spacing, st.coherence_length_x_m, st.coherence_length_y_m, np, np.float64
         )
 
-    def diffuser(self, shift_px: tuple[int, int] = (0, 0)) -> np.ndarray:
+    def diffuser(self, shift_px: tuple[float, float] = (0, 0)) -> np.ndarray:
+        """The diffuser's transmission moved laterally by ``shift_px`` (dy, dx) detector pixels:
+        exact rolls on the fine grid where the shift is a whole number of fine pixels, a
+        Fourier shift of the thickness (clipped at zero) where it is not (a drift)."""
         d, b = self._delta_beta_diffuser
         th = self.diffuser_thickness
-        if shift_px != (0, 0):
-            s = self.setup.oversample
-            th = np.roll(th, (shift_px[0] * s, shift_px[1] * s), axis=(0, 1))
+        fine = np.asarray(shift_px, float) * self.setup.oversample
+        if np.any(fine != 0):
+            whole = np.round(fine)
+            if np.allclose(fine, whole, atol=1e-9):
+                th = np.roll(th, (int(whole[0]), int(whole[1])), axis=(0, 1))
+            else:
+                ky = np.fft.fftfreq(th.shape[0])[:, None]
+                kx = np.fft.fftfreq(th.shape[1])[None, :]
+                ramp = np.exp(-2j * np.pi * (ky * fine[0] + kx * fine[1]))
+                th = np.clip(self.fft.ifft2(self.fft.fft2(th) * ramp).real, 0.0, None)
         return np.exp((-1j * d - b) * self.k * th)
 
     def _bin(self, a: np.ndarray) -> np.ndarray:
@@ -481,6 +491,7 @@ def simulate_scan(
     rotation_axis_offset_px: float = 0.0,
     diffuser_upstream_m: float = 0.0,
     zingers: float = 0.0,
+    diffuser_drift_px: tuple[float, float] = (0.0, 0.0),
     progress: bool = True,
 ) -> str:
     """Simulate a whole scan into a Zarr store (CONTRACT §1) and return its path.
@@ -492,8 +503,10 @@ def simulate_scan(
     find it). ``diffuser_upstream_m`` > 0 puts the diffuser that far upstream of the sample
     (the scan records L1 = 0). ``zingers`` is the fraction of pixels of every frame (sample and
     reference) hit by a zinger: one pixel gets 2-20x the open-beam counts on top (a scattered
-    X-ray on the sensor; :mod:`pwf_dask.detector`). The phantom and the truth are recorded in
-    the attributes.
+    X-ray on the sensor; :mod:`pwf_dask.detector`). ``diffuser_drift_px`` = (dy, dx): the
+    diffuser drifts linearly in time from where it was for the reference to that far (detector
+    pixels) at the last angle (thermal drift; :func:`pwf_dask.calibration.speckle_drift_px`).
+    The phantom and the truth are recorded in the attributes.
     """
     from . import scan_io
 
@@ -509,6 +522,9 @@ def simulate_scan(
             f"simulate: need >= 2 angles, >= 1 position, >= 32 x 32 px, photons > 0; got "
             f"{n_ang}, {n_pos}, {shape}, {photons}"
         )
+    drift = np.asarray(diffuser_drift_px, float)
+    if drift.shape != (2,) or not np.all(np.isfinite(drift)):
+        raise ValueError(f"simulate: diffuser_drift_px is a finite (dy, dx) pair, got {diffuser_drift_px!r}")
     if not 0 <= zingers < 0.1:
         raise ValueError(f"simulate: zingers is a fraction of the pixels in [0, 0.1), got {zingers}")
     setup = SpeckleSetup(shape=shape, photons=photons)
@@ -533,6 +549,8 @@ def simulate_scan(
         "simulation_rotation_axis_offset_m": setup.rotation_axis_offset_m,
         "simulation_diffuser_upstream_m": setup.diffuser_upstream_m,
         "simulation_zingers": zingers,
+        "simulation_diffuser_drift_y_px": float(diffuser_drift_px[0]),
+        "simulation_diffuser_drift_x_px": float(diffuser_drift_px[1]),
         "simulation_phantom": phantom_to_json(phantom),
     }
     dtype = "uint16" if raw else "float32"
@@ -581,7 +599,8 @@ def simulate_scan(
         g["reference"][k] = detect(sim.intensity(None, t))
         for a, ang in enumerate(angles_deg):
             fld, _ = sim.sample_field(phantom, float(ang))
-            g["projections"][k, a] = detect(sim.intensity(fld, t))
+            t_a = sim.diffuser(tuple(drift * a / (n_ang - 1))) if drift.any() else t
+            g["projections"][k, a] = detect(sim.intensity(fld, t_a))
             done += 1
             if progress and (done % max(1, total // 20) == 0 or done == total):
                 print(f"\rsimulating projections: {done}/{total}", end="", file=__import__("sys").stderr)

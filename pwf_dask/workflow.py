@@ -22,7 +22,7 @@ from .backend import resolve_device, to_numpy
 from .cluster import Runner, worker_fft_threads
 from .detector import DEFAULT_OUTLIER_SIGMA, check_threshold, repair_outliers
 from .optics import wavelength_m
-from .retrieval import METHODS
+from .retrieval import METHODS, check_diffuser_drift
 from .solver import DEFAULT_ALPHA, PAPER_TOL
 from .tracking import MIN_POSITIONS
 
@@ -139,6 +139,8 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
     out["residual_rmse"][p, a] = np.float32(res.residual_rmse)
     if "outlier_pixels" in out:  # stores made before the detector test lack it
         out["outlier_pixels"][p, a] = np.int32(res.parameters.get("outlier_pixels", 0))
+    if "diffuser_drift_px" in res.parameters and "diffuser_drift_y_px" in out:
+        out["diffuser_drift_y_px"][p, a], out["diffuser_drift_x_px"][p, a] = res.parameters["diffuser_drift_px"]
     out["iterations"][p, a] = np.int32(res.iterations)  # last: marks the projection done
     return p, a, res.iterations, res.converged, res.residual_rmse, time.perf_counter() - t0, _peak_rss_mb()
 
@@ -178,6 +180,7 @@ def retrieve_scan(
         raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
     resolve_device(device)  # fail early on --device gpu without CuPy
     check_threshold(outlier_sigma)
+    check_diffuser_drift(options.get("diffuser_drift", "auto"))
     alpha_c = complex(str(alpha).replace(" ", "")) if not isinstance(alpha, complex) else alpha
     ds, info = scan_io.open_scan(scan_path)
     if info.n_positions < MIN_POSITIONS.get(method, 1):

@@ -138,3 +138,28 @@ def test_unknown_diffuser_model_is_refused():
             coherence_length_y_m=0,
             diffuser_model="random",
         )
+
+
+@pytest.mark.parametrize("drift", [(0.0, 0.0), (0.5, -1.5), (0.3, 1.7), (-2.0, 0.25)])
+def test_speckle_drift_measured_within_three_hundredths_of_a_pixel(drift):
+    """The diffuser moved between the reference and a sample frame with beads and a rod in
+    it: whole fine pixels by rolls, the rest by Fourier shifts of the thickness. Unwhitened
+    and tapered: phase correlation scattered by 0.07 px, an untapered frame read 0.45 for 1.3."""
+    from pwf_dask.simulation import default_phantom
+
+    setup = SpeckleSetup(shape=(128, 128))
+    sim = SpeckleSimulator(setup, seed=4)
+    fov = 128 * setup.pixel_size_m
+    field, _ = sim.sample_field(default_phantom(fov, np.random.default_rng(5), height_m=fov))
+    reference = sim.reference()
+    sample = sim.noisy(sim.intensity(field, sim.diffuser(drift)))
+    measured = calibration.speckle_drift_px(sample, reference)
+    np.testing.assert_allclose(measured, drift, atol=0.03)
+
+
+def test_shift_transmission_is_a_roll_for_whole_pixels(rng):
+    t = np.exp(1j * rng.normal(size=(48, 40))).astype(np.complex64)
+    assert calibration.shift_transmission(t, (0.0, 0.0)) is t
+    np.testing.assert_allclose(calibration.shift_transmission(t, (2.0, -3.0)), np.roll(t, (2, -3), (0, 1)), atol=1e-5)
+    half = calibration.shift_transmission(calibration.shift_transmission(t, (0.5, 0.25)), (-0.5, -0.25))
+    np.testing.assert_allclose(half, t, atol=1e-5)

@@ -309,3 +309,20 @@ def test_pwf_k1_beats_lcs_k12_on_bead_beta(demo_recon, lcs12_recon):
 )
 def test_pwf_k1_beats_lcs_k12_on_bead_delta(demo_recon, lcs12_recon):
     assert bead_errors(demo_recon, 0)[0] < bead_errors(lcs12_recon, 0)[0]
+
+
+def test_a_drifting_diffuser_is_measured_per_projection(tmp_path, capsys):
+    """``simulate --diffuser-drift-px``: the diffuser creeps linearly over the scan; every
+    projection's drift is recorded (PWF moves its t_r by it), and a bad value is refused."""
+    scan, recon = tmp_path / "drift.zarr", tmp_path / "r.zarr"
+    args = ["simulate", str(scan), "--shape", "64", "96", "--angles", "5", "--positions", "1"]
+    assert cli.main([*args, "--seed", "3", "--diffuser-drift-px", "0.4", "-1.2"]) == 0
+    assert cli.main(["retrieve", str(scan), str(tmp_path / "never.zarr"), "--diffuser-drift", "sideways"]) != 0
+    assert "diffuser_drift must be" in capsys.readouterr().err
+    assert not (tmp_path / "never.zarr").exists()
+    workflow.retrieve_scan(scan, recon, **FAST)
+    ds = xr.open_zarr(recon)
+    assert (ds.attrs["simulation_diffuser_drift_y_px"], ds.attrs["simulation_diffuser_drift_x_px"]) == (0.4, -1.2)
+    steps = np.linspace(0.0, 1.0, 5)
+    np.testing.assert_allclose(ds["diffuser_drift_y_px"].values[0], 0.4 * steps, atol=0.03)
+    np.testing.assert_allclose(ds["diffuser_drift_x_px"].values[0], -1.2 * steps, atol=0.03)
