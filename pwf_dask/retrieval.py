@@ -404,7 +404,13 @@ def retrieve_projection(
     if moved:
         t = calibration.shift_transmission(t, drift, fft=fft)
         # the grains that drifted into the frame were never in the reference
-        unseen = xp.asarray(calibration.unseen_by_reference((ny, nx), drift, DRIFT_MARGIN_PX))
+        unseen = calibration.unseen_by_reference((ny, nx), drift, DRIFT_MARGIN_PX)
+        if unseen.mean() > 0.5:
+            raise ValueError(
+                f"the diffuser drifted ({drift[0]:.2f}, {drift[1]:.2f}) px since the reference: most of the "
+                "frame's speckle was never in it; take a new reference"
+            )
+        unseen = xp.asarray(unseen)
         excluded = unseen if excluded is None else excluded | unseen
     build = partial(
         solver.build_model,

@@ -344,3 +344,5 @@ def test_diffuser_drift_since_the_reference_is_measured_and_corrected():
     assert error(lost) > 0.5
     with pytest.raises(ValueError, match="diffuser_drift must be"):
         retrieve_projection(drifted, reference, **kw, diffuser_drift="sideways")
+    with pytest.raises(ValueError, match="take a new reference"):
+        retrieve_projection(drifted, reference, **kw, diffuser_drift=(0.0, 70.0))
