@@ -413,8 +413,8 @@ def speckle_drift_px(sample, reference, *, fft: FFT | None = None) -> tuple[floa
 
     Not in the paper, whose diffuser holds still: on a beamline it drifts between the
     reference and the sample frames (thermal, stage settling), and PWF fits t_r P1{x_r} to the
-    speckle grain by grain, so a third of a pixel of drift can quadruple the phase error and
-    1.5 pixels ruin it (README, "Diffuser drift"). Cross-correlation of the mean-normalised,
+    speckle grain by grain: half a pixel of drift multiplied the phase error by 3.5 and
+    1.5 pixels ruined it (README, "Diffuser drift"). Cross-correlation of the mean-normalised,
     Tukey-tapered frames divided by the tapers' own correlation (the overlap of the two
     windows falls with the shift and would pull the peak towards zero), refined by
     upsampled DFTs around the integer peak (1/10, then 1/100 px). Not whitened: phase
