@@ -25,6 +25,7 @@ import numpy as np
 
 from . import optics
 from .backend import FFT
+from .calibration import shift_transmission
 from .materials import delta_beta
 
 
@@ -310,10 +311,8 @@ class SpeckleSimulator:
             if np.allclose(fine, whole, atol=1e-9):
                 th = np.roll(th, (int(whole[0]), int(whole[1])), axis=(0, 1))
             else:
-                ky = np.fft.fftfreq(th.shape[0])[:, None]
-                kx = np.fft.fftfreq(th.shape[1])[None, :]
-                ramp = np.exp(-2j * np.pi * (ky * fine[0] + kx * fine[1]))
-                th = np.clip(self.fft.ifft2(self.fft.fft2(th) * ramp).real, 0.0, None)
+                moved = shift_transmission(th.astype(np.complex128), (fine[0], fine[1]), self.fft)
+                th = np.clip(moved.real, 0.0, None)
         return np.exp((-1j * d - b) * self.k * th)
 
     def _bin(self, a: np.ndarray) -> np.ndarray:
