@@ -427,15 +427,21 @@ def speckle_drift_px(sample, reference, *, fft: FFT | None = None) -> tuple[floa
     xp = get_array_module(sample, reference)
     fft = fft or FFT.for_module(xp)
     ny, nx = sample.shape
-    window = xp.asarray(np.outer(tukey(ny, DRIFT_TAPER), tukey(nx, DRIFT_TAPER)), dtype=xp.float32)
+    wy, wx = tukey(ny, DRIFT_TAPER), tukey(nx, DRIFT_TAPER)
+    window = xp.asarray(np.outer(wy, wx), dtype=xp.float32)
 
     def spectrum(a):
         a = xp.asarray(a, dtype=xp.float32)
         return fft.fft2((a / xp.mean(a) - 1.0) * window)
 
     cross = spectrum(sample) * xp.conj(spectrum(reference))
-    overlap = xp.abs(fft.fft2(window)) ** 2
-    correlation = fft.ifft2(cross).real / xp.maximum(fft.ifft2(overlap).real, 1e-3 * float(xp.sum(window**2)))
+    # the taper is separable, so its power spectrum and autocorrelation are outer products
+    # of 1-D ones: no frame-sized FFT for them
+    power_y, power_x = np.abs(np.fft.fft(wy)) ** 2, np.abs(np.fft.fft(wx)) ** 2
+    overlap = xp.asarray(np.outer(power_y, power_x))
+    window_correlation = np.outer(np.fft.ifft(power_y).real, np.fft.ifft(power_x).real)
+    floor = 1e-3 * float(np.sum(wy**2) * np.sum(wx**2))
+    correlation = fft.ifft2(cross).real / xp.asarray(np.maximum(window_correlation, floor), dtype=xp.float32)
     peak = np.unravel_index(int(xp.argmax(correlation)), correlation.shape)
     centre = np.array([q - n if q > n // 2 else q for q, n in zip(peak, (ny, nx))], float)
     for factor in (10, 100):
