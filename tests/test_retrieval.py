@@ -302,16 +302,20 @@ def test_thick_rod_goes_on_a_finer_grid_and_holds():
     assert error(auto) < 0.25, (error(coarse), error(auto))
 
 
-def test_a_beam_weaker_than_at_the_reference_still_converges(small_scene):
-    """The sample frame 5 % darker than the reference (ring current decay): a global factor
-    that Re(psi)'s mean absorbs and the background plane removes. Its doubled step sat in
-    the window where plain steps descend but Nesterov's stiffest mode grows (solver.pwf,
-    "Step"): before the stiff-restart halving, 1717 iterations; now as many as at 1.0."""
+@pytest.mark.parametrize("beam", [0.98, 0.95])
+def test_a_beam_weaker_than_at_the_reference_still_converges(small_scene, beam):
+    """The sample frame a little darker than the reference (ring current decay): a global
+    factor that Re(psi)'s mean absorbs and the background plane removes. With the former
+    doubling search the step followed the beam level past Nesterov's 4/(3 L): at 0.98 the
+    stiffest mode's growth left a +35 rad bump in the background (phase error 0.29), at 0.95
+    it took 1717 iterations. The curvature step (solver.largest_curvature) does not move."""
     sim = small_scene
-    res = retrieve_projection(0.95 * sim.sample, sim.reference, **kwargs(sim, max_iter=1000))
-    assert res.converged and res.iterations < 500, (res.iterations, res.parameters["stop_reason"])
-    assert res.parameters["step_final"] <= 0.25
-    assert relative_phase_error(res, sim) < 0.08
+    full = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=1000))
+    res = retrieve_projection(beam * sim.sample, sim.reference, **kwargs(sim, max_iter=1000))
+    assert res.converged and res.iterations < 1.2 * full.iterations + 10, (res.iterations, full.iterations)
+    assert res.parameters["step_final"] > 0.9 * full.parameters["step_final"]  # no halving needed
+    assert relative_phase_error(res, sim) < relative_phase_error(full, sim) + 0.01
+    assert float(np.abs(res.phase - sim.phase).max()) < 2 * np.pi  # no bump (it was +35 rad)
     assert float(np.abs(np.mean(res.attenuation[res.background]))) < 0.01
 
 

@@ -129,6 +129,28 @@ def test_step_is_safe_even_when_far_too_long(rng, restart):
     assert h[-1] < h[0]
 
 
+def test_curvature_estimate_approaches_the_largest_eigenvalue_from_below(rng):
+    """Eight power-iteration products give L within 25 % of (and below) the fully converged
+    estimate: 1/L_8 keeps eta L under Nesterov's 4/3."""
+    model, y = make_model(rng)
+    psi = 0.1 * (rng.normal(size=model.shape) + 1j * rng.normal(size=model.shape))
+    l8 = solver.largest_curvature(psi, y, model)
+    l_converged = solver.largest_curvature(psi, y, model, iterations=300)
+    assert 0.75 * l_converged < l8 <= l_converged * (1 + 1e-6), (l8, l_converged)
+    assert l8 == solver.largest_curvature(psi, y, model)  # seeded: the step is reproducible
+
+
+def test_curvature_step_does_not_follow_the_beam_level(rng):
+    """L is the Gauss-Newton term's, which does not depend on the data: the same for a frame
+    10 % darker. The curvature along the first direction, which the former doubling search
+    measured, follows the residual (its step doubled there and Nesterov's stiffest mode grew)."""
+    model, y = make_model(rng)
+    psi = np.zeros(model.shape, dtype=model.cdtype)
+    full = solver.largest_curvature(psi, y, model)
+    dark = solver.largest_curvature(psi, 0.9 * y, model)
+    assert abs(dark / full - 1) < 0.02, (full, dark)
+
+
 def test_unknown_restart_rule_is_refused(rng):
     model, y = make_model(rng)
     with pytest.raises(ValueError, match="restart must be"):
