@@ -396,15 +396,16 @@ def single_material_diffuser(
 DRIFT_TAPER = 0.2
 
 
-def _upsampled_dft(spectrum, centre, upsample_factor: int, half_width: int, xp):
-    """The inverse DFT of ``spectrum`` at offsets k / ``upsample_factor`` px, |k| <=
-    ``half_width``, around ``centre`` (Guizar-Sicairos et al., Opt. Lett. 33, 156 (2008)):
-    two matrix products instead of an FFT ``upsample_factor`` times larger."""
-    ny, nx = spectrum.shape
+def _upsampled_dft_kernels(shape, centre, upsample_factor: int, half_width: int, xp):
+    """Row and column kernels of the inverse DFT at offsets k / ``upsample_factor`` px,
+    |k| <= ``half_width``, around ``centre`` (Guizar-Sicairos et al., Opt. Lett. 33, 156
+    (2008)): ``rows @ spectrum @ cols`` instead of an FFT ``upsample_factor`` times larger,
+    and ``rows @ a`` times ``b @ cols`` for a separable spectrum a b^T."""
+    ny, nx = shape
     offsets = xp.arange(-half_width, half_width + 1) / upsample_factor
     rows = xp.exp(2j * np.pi * (centre[0] + offsets)[:, None] * xp.fft.fftfreq(ny)[None, :])
     cols = xp.exp(2j * np.pi * xp.fft.fftfreq(nx)[:, None] * (centre[1] + offsets)[None, :])
-    return (rows @ spectrum.astype(rows.dtype) @ cols).real, to_numpy(offsets)
+    return rows, cols, to_numpy(offsets)
 
 
 def speckle_drift_px(sample, reference, *, fft: FFT | None = None) -> tuple[float, float]:
@@ -438,15 +439,18 @@ def speckle_drift_px(sample, reference, *, fft: FFT | None = None) -> tuple[floa
     # the taper is separable, so its power spectrum and autocorrelation are outer products
     # of 1-D ones: no frame-sized FFT for them
     power_y, power_x = np.abs(np.fft.fft(wy)) ** 2, np.abs(np.fft.fft(wx)) ** 2
-    overlap = xp.asarray(np.outer(power_y, power_x))
     window_correlation = np.outer(np.fft.ifft(power_y).real, np.fft.ifft(power_x).real)
     floor = 1e-3 * float(np.sum(wy**2) * np.sum(wx**2))
     correlation = fft.ifft2(cross).real / xp.asarray(np.maximum(window_correlation, floor), dtype=xp.float32)
     peak = np.unravel_index(int(xp.argmax(correlation)), correlation.shape)
     centre = np.array([q - n if q > n // 2 else q for q, n in zip(peak, (ny, nx))], float)
+    power_y, power_x = xp.asarray(power_y), xp.asarray(power_x)
+    cross = cross.astype(xp.complex128)  # the kernels' precision, cast once for both passes
     for factor in (10, 100):
-        fine, offsets = _upsampled_dft(cross, centre, factor, 8, xp)
-        fine = fine / _upsampled_dft(overlap, centre, factor, 8, xp)[0]
+        rows, cols, offsets = _upsampled_dft_kernels((ny, nx), centre, factor, 8, xp)
+        # the taper's overlap is separable: two 1-D products, not a frame-sized one
+        overlap = xp.outer(rows @ power_y, power_x @ cols).real
+        fine = (rows @ cross @ cols).real / overlap
         iy, ix = np.unravel_index(int(xp.argmax(fine)), fine.shape)
         centre = np.array([centre[0] + offsets[iy], centre[1] + offsets[ix]])
     return float(centre[0]), float(centre[1])
