@@ -279,8 +279,8 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--diffuser-drift",
         default="auto",
-        help="pwf: move the diffuser estimate to where the speckle drifted since the reference: auto (measure "
-        "it per frame, correct from 0.05 px), off, or DY,DX in pixels",
+        help="follow the speckle's drift since the reference (pwf moves its diffuser estimate, the trackers "
+        "their reference frames): auto (measure it per frame, correct from 0.05 px), off, or DY,DX in pixels",
     )
 
 

@@ -224,6 +224,30 @@ def check_diffuser_drift(diffuser_drift) -> tuple[float, float] | None:
     return dy, dx
 
 
+def measured_drift(sample, reference, diffuser_drift, fft: FFT | None = None) -> tuple[tuple[float, float], Any]:
+    """The diffuser's drift (dy, dx) px between ``reference`` and ``sample`` as
+    ``diffuser_drift`` asks ("auto": measured by :func:`pwf_dask.calibration.speckle_drift_px`;
+    "off": none; or given), and the frame pixels whose grains the reference never saw, or
+    None where the drift is not corrected ("auto" below :func:`drift_threshold_px`, "off",
+    or a given (0, 0)). A drift that brings in most of the frame is refused with one line."""
+    given = check_diffuser_drift(diffuser_drift)
+    drift = (0.0, 0.0)
+    if given is not None:
+        drift = given
+    elif diffuser_drift == "auto":
+        drift = calibration.speckle_drift_px(sample, reference, fft=fft)
+    largest = max(abs(drift[0]), abs(drift[1]))
+    if not (largest > 0 if given is not None else largest >= drift_threshold_px(tuple(sample.shape))):
+        return drift, None
+    unseen = calibration.unseen_by_reference(tuple(sample.shape), drift, DRIFT_MARGIN_PX)
+    if unseen.mean() > 0.5:
+        raise ValueError(
+            f"the diffuser drifted ({drift[0]:.2f}, {drift[1]:.2f}) px since the reference: most of the "
+            "frame's speckle was never in it; take a new reference"
+        )
+    return drift, unseen
+
+
 def retrieve_projection(
     sample,
     reference,
@@ -317,6 +341,7 @@ def retrieve_projection(
             background_mask=background_mask,
             zero_background=zero_background,
             outlier_sigma=outlier_sigma,
+            diffuser_drift=diffuser_drift,
             **(tracking_options or {}),
             **(
                 {"delta_over_beta": mist_delta_over_beta(sample_material, sample_delta_over_beta, energy_eV)}
@@ -344,7 +369,7 @@ def retrieve_projection(
         raise ValueError(f"initial psi has shape {tuple(initial.shape)}, the image {tuple(y.shape)}")
     if restart not in solver.RESTARTS:
         raise ValueError(f"unknown restart {restart!r}: choose one of {', '.join(solver.RESTARTS)}")
-    drift_given = check_diffuser_drift(diffuser_drift)
+    check_diffuser_drift(diffuser_drift)
     if field_upsample != "auto" and not (str(field_upsample).isdigit() and int(field_upsample) >= 1):
         raise ValueError(f"field_upsample must be 'auto' or an integer >= 1, got {field_upsample!r}")
     # spikes: the reference is repaired (the diffuser estimate needs every pixel), the
@@ -393,23 +418,12 @@ def retrieve_projection(
         t = xp.asarray(diffuser)
         if t.shape != shape:
             raise ValueError(f"diffuser has shape {t.shape}, the computational grid is {shape} (pad {pad})")
-    drift = (0.0, 0.0)
-    if drift_given is not None:
-        drift = drift_given
-    elif diffuser_drift == "auto":
-        drift = calibration.speckle_drift_px(y, ref, fft=fft)
-    largest = max(abs(drift[0]), abs(drift[1]))
-    moved = largest > 0 if drift_given is not None else largest >= drift_threshold_px((ny, nx))
+    drift, unseen = measured_drift(y, ref, diffuser_drift, fft)
+    moved = unseen is not None
     excluded = outliers if n_outliers else None
     if moved:
         t = calibration.shift_transmission(t, drift, fft=fft)
         # the grains that drifted into the frame were never in the reference
-        unseen = calibration.unseen_by_reference((ny, nx), drift, DRIFT_MARGIN_PX)
-        if unseen.mean() > 0.5:
-            raise ValueError(
-                f"the diffuser drifted ({drift[0]:.2f}, {drift[1]:.2f}) px since the reference: most of the "
-                "frame's speckle was never in it; take a new reference"
-            )
         unseen = xp.asarray(unseen)
         excluded = unseen if excluded is None else excluded | unseen
     build = partial(
@@ -544,6 +558,7 @@ def retrieve_tracking(
     background_mask=None,
     zero_background: bool = True,
     outlier_sigma: float | None = DEFAULT_OUTLIER_SIGMA,
+    diffuser_drift: str | tuple[float, float] = "auto",
     **options,
 ) -> RetrievalResult:
     """The speckle-tracking baselines (``umpa``, ``lcs``, ``gf``, ``mist``) behind the same
@@ -554,6 +569,14 @@ def retrieve_tracking(
     ``window``, ``max_shift`` for UMPA, ``delta_over_beta`` for MIST). Spikes beyond
     ``outlier_sigma`` (:mod:`pwf_dask.detector`) are replaced by their neighbours' median in
     every frame first: the trackers need every pixel.
+
+    ``diffuser_drift`` (not in the papers; as for PWF, :func:`measured_drift`, per position):
+    each reference frame is moved by the Fourier shift theorem to where its diffuser was for
+    the sample frame, and the strips whose grains the reference never saw are cropped off
+    before tracking; phase and attenuation there continue the edge values. Uncorrected, a
+    drift eats into UMPA's search range, puts every displacement at LCS's linearisation
+    limit or at the sub-pixel fit's half-pixel worst case, and the unmatched strips feed
+    wrong displacements into the Fourier integration (README, "Diffuser drift").
     """
     from . import tracking
 
@@ -562,6 +585,7 @@ def retrieve_tracking(
     r = xp.asarray(reference, dtype=xp.float64)
     if s.shape != r.shape or s.ndim not in (2, 3):
         raise ValueError(f"sample {s.shape} and reference {r.shape} must be equal (y, x) or (K, y, x) stacks")
+    check_diffuser_drift(diffuser_drift)
     for name, a in (("sample", s), ("reference", r)):
         if not bool(xp.all(xp.isfinite(a))):
             raise ValueError(f"{name} has non-finite values (NaN or inf)")
@@ -571,11 +595,31 @@ def retrieve_tracking(
     r, r_outliers = repair_outliers(r, outlier_sigma)
     scale = float(xp.mean(r))
     s, r = s / scale, r / scale
+    single = s.ndim == 2
+    s, r = (s[None], r[None]) if single else (s, r)
+    drifts, unseen = [], np.zeros(s.shape[1:], bool)
+    for k in range(s.shape[0]):
+        d, strips = measured_drift(s[k], r[k], diffuser_drift)
+        drifts.append(d)
+        if strips is not None:
+            r[k] = xp.maximum(calibration.shift_transmission(r[k].astype(xp.complex128), d).real, 0.0)
+            unseen |= strips
+    # the unseen strips lie along the edges: what is left is a rectangle
+    rows, cols = np.flatnonzero(~unseen.all(axis=1)), np.flatnonzero(~unseen.all(axis=0))
+    window = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    s, r = s[(slice(None), *window)], r[(slice(None), *window)]
+    if single:
+        s, r = s[0], r[0]
     fresnel = optics.wavelength_m(energy_eV) * diffuser_detector_distance_m / pixel_size_m**2
     fn = {"umpa": tracking.umpa, "lcs": tracking.lcs, "gf": tracking.geometric_flow, "mist": tracking.mist}[method]
     out = fn(s, r, fresnel=fresnel, **options)
-    phase = to_numpy(out.phase).astype(np.float64)
-    attenuation = to_numpy(out.attenuation).astype(np.float64)
+    ny, nx = unseen.shape
+    widths = ((window[0].start, ny - window[0].stop), (window[1].start, nx - window[1].stop))
+
+    def full_frame(a):
+        return np.pad(to_numpy(a).astype(np.float64), widths, mode="edge")
+
+    phase, attenuation = full_frame(out.phase), full_frame(out.attenuation)
     mask = None
     if zero_background:
         mask = (
@@ -583,16 +627,18 @@ def retrieve_tracking(
             if background_mask is not None
             else bg.detect_background(phase, attenuation if method != "gf" else None)
         )
+        mask = mask & ~unseen  # the strips' values are extrapolated
         phase = bg.zero_background(phase, mask)
         if method != "gf":
             attenuation = bg.zero_background(attenuation, mask)
     res = to_numpy(out.residual) * 100.0
+    mean_drift = np.mean(drifts, axis=0)
     return RetrievalResult(
         phase=xp.asarray(phase.astype(np.float32)),
         attenuation=xp.asarray(attenuation.astype(np.float32)),
         iterations=0,
         converged=True,
-        residual=xp.asarray(res.astype(np.float32)),
+        residual=xp.asarray(full_frame(res).astype(np.float32)),
         residual_rmse=float(np.sqrt(np.mean(res**2))),
         loss_history=[],
         coherence_length_x_m=float("nan"),
@@ -603,6 +649,11 @@ def retrieve_tracking(
             "outlier_sigma": outlier_sigma,
             "outlier_pixels": int(s_outliers.sum()),
             "outlier_pixels_reference": int(r_outliers.sum()),
+            "diffuser_drift": diffuser_drift if isinstance(diffuser_drift, str) else "given",
+            # the mean over the K positions (a scan stores one value per reconstruction)
+            "diffuser_drift_px": [float(mean_drift[0]), float(mean_drift[1])],
+            "diffuser_drift_px_per_position": [[float(a), float(b)] for a, b in drifts],
+            "diffuser_moved": bool(unseen.any()),
         },
         background=mask,
     )

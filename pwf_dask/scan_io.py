@@ -278,7 +278,8 @@ def create_reconstruction(path: str | Path, info: ScanInfo, params: dict):
     _create(g, "converged", (npos, nang), (1, 1), ("position", "angle"), "bool", False)
     _create(g, "residual_rmse", (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
     _create(g, "outlier_pixels", (npos, nang), (1, 1), ("position", "angle"), "int32", -1)
-    for name in ("diffuser_drift_y_px", "diffuser_drift_x_px"):  # PWF: the speckle's measured drift
+    # the speckle's measured drift (the multi-image trackers: the mean over the K positions)
+    for name in ("diffuser_drift_y_px", "diffuser_drift_x_px"):
         _create(g, name, (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
     attrs = {k: v for k, v in info.attrs.items() if isinstance(v, (int, float, str, bool))}
     attrs.update({k: v for k, v in params.items() if isinstance(v, (int, float, str, bool)) or v is None})
