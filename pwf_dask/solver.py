@@ -579,7 +579,13 @@ class PWFSolution:
 
 
 def _settled(steps: list[float], psi, rtol: float, window: int, xp) -> bool:
-    """Extrapolated remaining change of psi below ``rtol`` rms(psi) (see :func:`pwf`)."""
+    """Extrapolated remaining change of psi below ``rtol`` rms(psi) (see :func:`pwf`).
+
+    ``steps`` are the step sizes of the current momentum run only: a restart drops the step
+    by orders of magnitude (3e-2 to 2e-4 rad on a 256 x 256 frame at L1 = 0) while the slow
+    modes still have far to go, and two windows either side of it read as a fast linear
+    rate (that run stopped at iteration 198 with phase error 0.058; converged 0.040).
+    """
     if rtol <= 0:
         return True
     if len(steps) < 2 * window:
@@ -637,8 +643,8 @@ def pwf(
     solution: a phase still creeping at 0.005 rad per iteration passes it while radians short
     (measured: 40 % of the cylinder phase on a 48 x 128 frame, stopped at iteration 67). So
     the stop also needs the extrapolated remaining change, step * rho / (1 - rho), with the
-    linear rate rho from the mean rms steps of two successive ``window``-iteration windows,
-    below ``rtol`` times rms(psi) (``rtol`` = 0 disables this test), or J stationary: its best
+    linear rate rho from the mean rms steps of two successive ``window``-iteration windows of
+    the current momentum run (:func:`_settled`), below ``rtol`` times rms(psi) (``rtol`` = 0 disables this test), or J stationary: its best
     value lowered by less than ``jtol`` (relative) from one window to the next
     (:func:`_stationary`; ``jtol`` = 0 disables it).
 
@@ -680,7 +686,7 @@ def pwf(
     phi_prev = psi
     last = None  # (psi, J, direction, evaluation) of the last accepted evaluation
     last_x_norm = None
-    steps: list[float] = []
+    steps: list[float] = []  # accepted step sizes since the last momentum restart
     momentum_used = False
     history: list[float] = []
     restarts = backtracks = streak = 0
@@ -697,6 +703,7 @@ def pwf(
         run's oscillation grew at the longer step."""
         nonlocal restarts, halved, eta, backtracks
         restarts += 1
+        steps.clear()  # the stop's rate estimate starts afresh with the run (_settled)
         if restart != "gradient" or len(recent_steps) < 2:
             return
         if halved:
@@ -739,6 +746,7 @@ def pwf(
             else:
                 backtracks += 1
                 eta *= 0.5
+                steps.clear()
             psi, j, d, ev = last
             mu = 1.0
             momentum_used = False
