@@ -644,9 +644,9 @@ def pwf(
     (measured: 40 % of the cylinder phase on a 48 x 128 frame, stopped at iteration 67). So
     the stop also needs the extrapolated remaining change, step * rho / (1 - rho), with the
     linear rate rho from the mean rms steps of two successive ``window``-iteration windows of
-    the current momentum run (:func:`_settled`), below ``rtol`` times rms(psi) (``rtol`` = 0 disables this test), or J stationary: its best
-    value lowered by less than ``jtol`` (relative) from one window to the next
-    (:func:`_stationary`; ``jtol`` = 0 disables it).
+    the current momentum run (:func:`_settled`), below ``rtol`` times rms(psi) (``rtol`` = 0
+    disables this test), or J stationary: its best value lowered by less than ``jtol``
+    (relative) from one window to the next (:func:`_stationary`; ``jtol`` = 0 disables it).
 
     Step: ``step`` is eta of Algorithm S1; with ``step_search`` it is in units of 1/L, L the
     largest curvature in the metric at psi_0 (:func:`largest_curvature`, power iteration), so
