@@ -7,7 +7,8 @@
 #   bench_scan_cpu.*   ~3 min: projections/s/worker on a LocalCluster, full-scan model
 #   bead_contrast.*    ~1 min: the largest bead's phase/attenuation contrast against alpha
 #   detector_defects.* ~6 min: PWF with zingers in the images, defect test on and off
-#   authors_release.*  ~8 min: pwf-dask against the authors' released choices, 4 scenes
+#   authors_release.*  ~10 min: pwf-dask against the authors' released choices, 4 scenes
+#   drift_baselines.*  ~1 min: UMPA and LCS with a drifting diffuser, correction off and on
 set -euo pipefail
 PWF=${PWF:-.venv/bin/pwf-dask}
 OUT=${OUT:-workflows/results}
@@ -19,7 +20,8 @@ case "${1:-all}" in
   bead) "$(dirname "$PWF")/python" workflows/bead_contrast.py --out "$OUT" ;;
   defects) "$(dirname "$PWF")/python" workflows/detector_defects.py --out "$OUT" ;;
   authors) "$(dirname "$PWF")/python" workflows/authors_release.py --out "$OUT" ;;
+  drift) "$(dirname "$PWF")/python" workflows/drift_baselines.py --out "$OUT" ;;
   all)
-    for b in accuracy stability iteration scan bead defects authors; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|stability|iteration|scan|bead|defects|authors|all]" >&2; exit 2 ;;
+    for b in accuracy stability iteration scan bead defects authors drift; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|stability|iteration|scan|bead|defects|authors|drift|all]" >&2; exit 2 ;;
 esac
