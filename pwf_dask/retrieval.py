@@ -452,7 +452,9 @@ def retrieve_projection(
     model = build(field_upsample=1 if auto_field else int(field_upsample))
     y_full = xp.zeros(shape, dtype=rdt)
     y_full[model.frame] = y / scale
-    psi0 = _initial_psi(initial, y, ref, model, energy_eV, pixel_size_m, diffuser_detector_distance_m, tracking_options)
+    # a UMPA start follows the drift measured above rather than measuring it again
+    start_options = {**(tracking_options or {}), "diffuser_drift": drift if moved else "off"}
+    psi0 = _initial_psi(initial, y, ref, model, energy_eV, pixel_size_m, diffuser_detector_distance_m, start_options)
     run = partial(
         solver.pwf,
         y_full,
