@@ -9,9 +9,21 @@ def rng():
     return np.random.default_rng(1234)
 
 
-@pytest.fixture(scope="session")
-def cupy():
-    cp = cupy_or_none()
-    if cp is None:
-        pytest.skip("CuPy with a CUDA device is not available")
-    return cp
+@pytest.fixture(params=["device", "emulated"])
+def cupy(request):
+    """CuPy on a CUDA device (skipped without one), and the CPU emulator of
+    ``tests/emulated_cupy.py``, which runs the same CuPy code paths on any machine and is
+    as strict as CuPy about host arrays reaching device code."""
+    if request.param == "device":
+        cp = cupy_or_none()
+        if cp is None:
+            pytest.skip("CuPy with a CUDA device is not available")
+        yield cp
+        return
+    from emulated_cupy import installed
+
+    from pwf_dask import workflow
+
+    with installed() as cp:
+        yield cp
+    workflow._DIFFUSERS.clear()  # fits made of emulated arrays must not reach a real device run

@@ -23,3 +23,13 @@ def test_bench_iteration_quick_writes_its_files(tmp_path, capsys):
 def test_bench_unknown_name_is_refused():
     with pytest.raises(SystemExit):
         cli.main(["bench", "nonsense"])
+
+
+@pytest.mark.gpu
+def test_bench_iteration_on_cupy_names_the_device(cupy, tmp_path):
+    """The GPU branch of the benchmark (device name, stream sync, its own file)."""
+    assert cli.main(["bench", "iteration", "--quick", "--device", "gpu", "--out", str(tmp_path)]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "bench_iteration_gpu.csv")))
+    assert len(rows) == 2 and all(float(r["ratio"]) > 0 for r in rows)
+    assert rows[0]["device"] == cupy.cuda.runtime.getDeviceProperties(0)["name"].decode()
+    assert (tmp_path / "bench_iteration_gpu.md").exists()

@@ -65,6 +65,21 @@ def test_schedulers_give_identical_results(tiny_scan, tmp_path, scheduler):
     stores_equal(ref, other)
 
 
+@pytest.mark.gpu
+def test_gpu_device_gives_the_cpu_result(cupy, tiny_scan, tmp_path):
+    """``--device gpu``: every stage on CuPy arrays (read, diffuser fit, PWF, FBP) writes
+    the store the CPU writes, within float32 rounding."""
+    cpu, gpu = tmp_path / "cpu.zarr", tmp_path / "gpu.zarr"
+    for path, device in ((cpu, "cpu"), (gpu, "gpu")):
+        workflow.retrieve_scan(tiny_scan, path, device=device, **FAST)
+        workflow.tomo_scan(path, device=device)
+    a, b = xr.open_zarr(cpu), xr.open_zarr(gpu)
+    assert b.attrs["device"] == "gpu"
+    for name in ("phase", "attenuation", "delta", "beta"):
+        scale = float(np.abs(a[name].values).max())
+        np.testing.assert_allclose(b[name].values, a[name].values, atol=1e-4 * scale, err_msg=name)
+
+
 def test_resume_computes_only_missing(tiny_scan, tmp_path, monkeypatch):
     full = tmp_path / "full.zarr"
     workflow.retrieve_scan(tiny_scan, full, **FAST)

@@ -1,0 +1,322 @@
+"""A CPU stand-in for CuPy, as strict as CuPy where mixing host and device arrays is concerned.
+
+No GPU has been lent to most sessions of this project, so the CuPy branches of the numerics
+(``xp is not np``, ``cupy.fft``, ``.get()``) would otherwise never run before a user's GPU
+does. This module lets the GPU tests run on any machine: installed as ``sys.modules["cupy"]``,
+it hands out :class:`ndarray` objects that hold a NumPy array but behave towards NumPy as a
+CuPy array does (cupy/_core/core.pyx):
+
+- implicit conversion to NumPy raises ``TypeError`` (``np.asarray(a)``, ``np.exp(a)``,
+  ``scipy.ndimage.*(a)``): a host routine called on a device array is a bug on a GPU;
+- arithmetic with a NumPy array of one or more dimensions raises ``TypeError``, and so does
+  assigning one into a slice (CuPy's default, without ``CUPY_EXPERIMENTAL_SLICE_COPY``);
+- reductions and scalar indexing return 0-d arrays, which convert with ``float()``;
+- ``fft`` keeps single precision (cupy.fft does, numpy.fft does not): it is ``scipy.fft``.
+
+Functions are NumPy's with arrays unwrapped and results wrapped; only the names CuPy also
+has are offered (:data:`FUNCTIONS`), so code that needs a NumPy-only routine fails here as
+it would on a GPU. Numbers are NumPy's, so results equal the NumPy path's up to rounding.
+"""
+
+from __future__ import annotations
+
+import operator
+import sys
+import types
+from contextlib import contextmanager
+
+import numpy as np
+import scipy.fft
+
+_MIXING = "Unsupported type <class 'numpy.ndarray'>"
+
+#: NumPy functions CuPy provides under the same name (those the package may reach for)
+FUNCTIONS = (
+    "abs absolute all allclose amax amin angle any arange arccos arcsin arctan arctan2 argmax argmin "
+    "argsort around array_equal asarray ascontiguousarray atleast_1d atleast_2d broadcast_to ceil "
+    "clip concatenate conj conjugate copy cos cosh count_nonzero cumsum deg2rad diag diff divide dot "
+    "einsum empty empty_like exp expand_dims eye flip floor full full_like gradient hypot imag "
+    "indices isfinite isnan linspace log log10 log1p logical_and logical_not logical_or matmul "
+    "max maximum mean median meshgrid min minimum moveaxis multiply nanmean nanmedian nonzero ones "
+    "ones_like outer pad percentile power prod ptp rad2deg ravel real reshape rint roll round sign "
+    "sin sinh sort sqrt square squeeze stack std subtract sum swapaxes take tan tanh tensordot tile "
+    "trace transpose tril triu unique var vdot vstack hstack where zeros zeros_like"
+).split()
+
+#: dtypes and constants CuPy re-exports from NumPy
+CONSTANTS = (
+    "bool_ float16 float32 float64 complex64 complex128 int8 int16 int32 int64 uint8 uint16 "
+    "uint32 uint64 intp dtype finfo iinfo pi e inf nan newaxis"
+).split()
+
+
+def _unwrap(x, allow_host: bool = False):
+    if isinstance(x, ndarray):
+        return x._a
+    if isinstance(x, np.ndarray) and x.ndim > 0 and not allow_host:
+        raise TypeError(_MIXING)
+    if isinstance(x, (list, tuple)):
+        return type(x)(_unwrap(v, allow_host) for v in x)
+    if isinstance(x, dict):
+        return {k: _unwrap(v, allow_host) for k, v in x.items()}
+    return x
+
+
+def _wrap(x):
+    if isinstance(x, np.ndarray):
+        return ndarray(x)
+    if isinstance(x, np.generic):
+        return ndarray(np.asarray(x))
+    if isinstance(x, tuple):
+        return tuple(_wrap(v) for v in x)
+    if isinstance(x, list):
+        return [_wrap(v) for v in x]
+    return x
+
+
+def _device(fn, allow_host: bool = False):
+    """``fn`` on unwrapped arguments, its arrays wrapped back as device arrays."""
+
+    def call(*args, **kwargs):
+        return _wrap(fn(*_unwrap(args, allow_host), **_unwrap(kwargs, allow_host)))
+
+    call.__name__ = getattr(fn, "__name__", "function")
+    return call
+
+
+class ndarray:  # noqa: N801 (CuPy's name)
+    """A device array: a NumPy array that refuses to be treated as one."""
+
+    __slots__ = ("_a",)
+    __module__ = "cupy"  # what pwf_dask.backend.get_array_module recognises    __array_priority__ = 100
+    #: numpy ufuncs and array functions on this type raise (as with a CUDA pointer)
+    __array_ufunc__ = None
+
+    def __init__(self, a: np.ndarray):
+        object.__setattr__(self, "_a", a)
+
+    def __array__(self, *args, **kwargs):
+        raise TypeError(
+            "Implicit conversion to a NumPy array is not allowed. "
+            "Please use `.get()` to construct a NumPy array explicitly."
+        )
+
+    def __array_function__(self, func, types, args, kwargs):
+        raise TypeError(f"numpy.{func.__name__} on a device array: use the cupy function")
+
+    # conversion
+    def get(self):
+        return self._a.copy()
+
+    def item(self):
+        return self._a.item()
+
+    def tolist(self):
+        return self._a.tolist()
+
+    def __float__(self):
+        return float(self._a)
+
+    def __int__(self):
+        return int(self._a)
+
+    def __complex__(self):
+        return complex(self._a)
+
+    def __bool__(self):
+        return bool(self._a)
+
+    def __index__(self):
+        return operator.index(self._a.item())
+
+    def __format__(self, spec):
+        return format(self._a.item() if self._a.ndim == 0 else self._a, spec)
+
+    def __repr__(self):
+        return f"emulated_cupy.{self._a!r}"
+
+    def __len__(self):
+        return len(self._a)
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+    # attributes
+    shape = property(lambda self: self._a.shape)
+    dtype = property(lambda self: self._a.dtype)
+    ndim = property(lambda self: self._a.ndim)
+    size = property(lambda self: self._a.size)
+    nbytes = property(lambda self: self._a.nbytes)
+    itemsize = property(lambda self: self._a.itemsize)
+    strides = property(lambda self: self._a.strides)
+    flags = property(lambda self: self._a.flags)
+    T = property(lambda self: ndarray(self._a.T))
+
+    @property
+    def real(self):
+        return ndarray(self._a.real)
+
+    @real.setter
+    def real(self, value):
+        self._a.real = _unwrap(value)
+
+    @property
+    def imag(self):
+        return ndarray(self._a.imag)
+
+    @imag.setter
+    def imag(self, value):
+        self._a.imag = _unwrap(value)
+
+    def __getattr__(self, name):
+        if name == "_a" or name.startswith("__"):
+            # no __array_interface__ and the like: NumPy must not see the host buffer
+            raise AttributeError(name)
+        # methods (astype, copy, reshape, sum, conj, ...), NumPy's with arrays kept on device
+        return _device(getattr(self._a, name))
+
+    def __getitem__(self, key):
+        return _wrap(self._a[_unwrap(key, allow_host=True)])
+
+    def __setitem__(self, key, value):
+        self._a[_unwrap(key, allow_host=True)] = _unwrap(value)
+
+    def __copy__(self):
+        return ndarray(self._a.copy())
+
+    def __deepcopy__(self, memo):
+        return ndarray(self._a.copy())
+
+    def __reduce__(self):
+        return (_from_host, (self._a,))
+
+
+def _from_host(a):
+    return ndarray(np.array(a))
+
+
+def _binary(op, iop=None):
+    def forward(self, other):
+        return _wrap(op(self._a, _unwrap(other)))
+
+    def backward(self, other):
+        return _wrap(op(_unwrap(other), self._a))
+
+    def inplace(self, other):
+        # in place with NumPy's casting rules (a complex value into a float array fails)
+        iop(self._a, _unwrap(other))
+        return self
+
+    return forward, backward, inplace
+
+
+for _name, _op in {
+    "add": operator.add,
+    "sub": operator.sub,
+    "mul": operator.mul,
+    "truediv": operator.truediv,
+    "floordiv": operator.floordiv,
+    "mod": operator.mod,
+    "pow": operator.pow,
+    "matmul": operator.matmul,
+    "and": operator.and_,
+    "or": operator.or_,
+    "xor": operator.xor,
+}.items():
+    _f, _b, _i = _binary(_op, getattr(operator, f"i{_name}"))
+    setattr(ndarray, f"__{_name}__", _f)
+    setattr(ndarray, f"__r{_name}__", _b)
+    setattr(ndarray, f"__i{_name}__", _i)
+
+for _name, _op in {
+    "lt": operator.lt,
+    "le": operator.le,
+    "eq": operator.eq,
+    "ne": operator.ne,
+    "gt": operator.gt,
+    "ge": operator.ge,
+}.items():
+    setattr(ndarray, f"__{_name}__", _binary(_op)[0])
+
+ndarray.__neg__ = lambda self: ndarray(-self._a)
+ndarray.__pos__ = lambda self: self
+ndarray.__abs__ = lambda self: ndarray(np.abs(self._a))
+ndarray.__invert__ = lambda self: ndarray(~self._a)
+ndarray.__hash__ = None
+
+
+def _module() -> types.ModuleType:
+    cp = types.ModuleType("cupy", __doc__)
+    cp.ndarray = ndarray
+    for name in FUNCTIONS:
+        if hasattr(np, name):
+            setattr(cp, name, _device(getattr(np, name)))
+    for name in CONSTANTS:
+        setattr(cp, name, getattr(np, name))
+
+    # creation from host data is the one place a NumPy array may go in; it is copied, as a
+    # transfer to the device is, so that device code cannot write into the caller's array
+    def asarray(a, dtype=None, order=None):
+        if isinstance(a, ndarray):
+            return ndarray(np.asarray(a._a, dtype=dtype, order=order))
+        return ndarray(np.array(a, dtype=dtype, order=order, copy=True))
+
+    cp.asarray = asarray
+    cp.array = _device(np.array, allow_host=True)
+    cp.asnumpy = lambda a: a.get() if isinstance(a, ndarray) else np.asarray(a)
+    cp.get_array_module = lambda *arrays: cp if any(isinstance(a, ndarray) for a in arrays) else np
+
+    fft = types.ModuleType("cupy.fft")
+    for name in "fft ifft fft2 ifft2 fftn ifftn rfft irfft rfft2 irfft2 rfftn irfftn".split():
+        setattr(fft, name, _device(getattr(scipy.fft, name)))
+    for name in ("fftfreq", "rfftfreq", "fftshift", "ifftshift"):
+        setattr(fft, name, _device(getattr(np.fft, name)))
+    cp.fft = fft
+
+    linalg = types.ModuleType("cupy.linalg")
+    for name in ("norm", "solve", "lstsq", "inv", "eigh", "svd", "det"):
+        setattr(linalg, name, _device(getattr(np.linalg, name)))
+    cp.linalg = linalg
+
+    class _Stream:
+        def synchronize(self):
+            pass
+
+    class _Device:
+        def __init__(self, device_id: int = 0):
+            self.id = device_id
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def use(self):
+            pass
+
+    cuda = types.ModuleType("cupy.cuda")
+    cuda.runtime = types.SimpleNamespace(
+        getDeviceCount=lambda: 1,
+        getDeviceProperties=lambda device_id: {"name": b"emulated CuPy (NumPy on the CPU)"},
+    )
+    cuda.Device = _Device
+    cuda.Stream = types.SimpleNamespace(null=_Stream())
+    cp.cuda = cuda
+    return cp
+
+
+@contextmanager
+def installed():
+    """``import cupy`` gives the emulator inside the block; the previous module after it."""
+    before = {k: sys.modules.get(k) for k in ("cupy", "cupy.fft", "cupy.linalg", "cupy.cuda")}
+    cp = _module()
+    sys.modules.update({"cupy": cp, "cupy.fft": cp.fft, "cupy.linalg": cp.linalg, "cupy.cuda": cp.cuda})
+    try:
+        yield cp
+    finally:
+        for k, v in before.items():
+            if v is None:
+                sys.modules.pop(k, None)
+            else:
+                sys.modules[k] = v
