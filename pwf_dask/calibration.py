@@ -54,7 +54,8 @@ def _fit_gaussian_flank(freq: np.ndarray, power: np.ndarray, noise: float) -> fl
     for i in range(ipk, freq.size):
         if smooth[i] < max(3e-3 * peak, 3 * noise / np.sqrt(max(power.size, 1))):
             break
-        if smooth[i] <= 0.7 * peak:
+        # a point the noise pushed to or below zero has no logarithm to fit
+        if smooth[i] <= 0.7 * peak and sig[i] > 0:
             sel[i] = True
     if sel.sum() < 3:
         raise ValueError("too few frequencies on the spectrum's flank")
