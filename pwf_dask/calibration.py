@@ -34,7 +34,7 @@ def _axis_power_spectra(img: np.ndarray):
     spec = np.abs(np.fft.fft2((img - img.mean()) * win)) ** 2
     v, u = np.fft.fftfreq(ny)[:, None], np.fft.fftfreq(nx)[None, :]
     corners = (u * u + v * v) > 0.3
-    noise = float(np.median(spec[np.broadcast_to(corners, spec.shape)]))
+    noise = float(np.median(spec[np.broadcast_to(corners, spec.shape)])) / np.log(2.0)
     px = spec.mean(axis=0)[: nx // 2]
     py = spec.mean(axis=1)[: ny // 2]
     return (np.fft.fftfreq(nx)[: nx // 2], px), (np.fft.fftfreq(ny)[: ny // 2], py), noise

@@ -40,6 +40,25 @@ def test_coherence_lengths_on_sandpaper_err_long_not_short():
     assert 1.0 <= ey / sim.setup.coherence_length_y_m < 1.15
 
 
+@pytest.mark.parametrize("photons", [1e2, 3e2])
+def test_coherence_lengths_hold_at_low_dose(photons):
+    """The noise floor is the corners' mean periodogram: their median is ln 2 of it (an
+    exponential distribution), and subtracting the median left a floor that flattened the
+    flank, 0.4-0.85 of the truth at 1e2 photons/pixel on these scenes."""
+    for seed in range(4):
+        sim = SpeckleSimulator(SpeckleSetup(shape=(256, 256), photons=photons), seed=seed)
+        ex, ey = calibration.coherence_lengths(sim.reference(), sim.setup.pixel_size_m)
+        assert 0.9 < ex / sim.setup.coherence_length_x_m < 1.15, (seed, ex)
+        assert 0.9 < ey / sim.setup.coherence_length_y_m < 1.15, (seed, ey)
+
+
+def test_coherence_lengths_of_developed_speckle_at_300_photons(rng):
+    ref = developed_speckle(rng, 384, 0.65e-6, 3.47e-6, 4.31e-6, photons=300)
+    ex, ey = calibration.coherence_lengths(ref, 0.65e-6)
+    assert ex == pytest.approx(3.47e-6, rel=0.05)
+    assert ey == pytest.approx(4.31e-6, rel=0.05)
+
+
 def test_flat_reference_is_refused():
     with pytest.raises(ValueError, match="coherence"):
         calibration.coherence_lengths(np.ones((64, 64)), 1e-6)
