@@ -90,12 +90,17 @@ def default_phantom(
     """A toothpick-like cellulose cylinder with soda-lime glass beads inside it (the paper's sample).
 
     Sizes scale with the field of view: the cylinder spans ``cylinder_fraction`` of it, bead
-    radii 5-12 % of it, beads placed without overlap inside the cylinder and the frame height.
+    radii 5-12 % of it (at most 40 % of the frame height), beads placed without overlap inside
+    the cylinder and the frame height.
     """
     rng = rng or np.random.default_rng(0)
     height_m = height_m or field_of_view_m
     big_r = 0.5 * cylinder_fraction * field_of_view_m
     lo, hi = bead_radius_range_m or (0.05 * field_of_view_m, 0.12 * field_of_view_m)
+    # a frame of few rows (a slab of a wide detector) holds smaller beads: each must fit
+    # its height with the 1.2 r margin the placement keeps
+    hi = min(hi, 0.5 * height_m / 1.25)
+    lo = min(lo, hi)
     spheres: list[Sphere] = []
     radii = np.sort(rng.uniform(lo, hi, n_beads))[::-1]
     radii[0] = hi

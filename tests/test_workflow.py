@@ -213,6 +213,19 @@ def test_simulate_with_the_diffuser_upstream_records_l1_zero(tmp_path):
     assert scan_io.open_scan(scan) is not None  # a valid CONTRACT §1 scan
 
 
+@pytest.mark.parametrize("shape", [(32, 256), (33, 200)])
+def test_simulate_a_slab_of_few_rows(tmp_path, shape):
+    """A wide frame of few rows (a slab of a detector) holds beads that fit its height (the
+    placement failed with 'high - low < 0' before)."""
+    scan = tmp_path / "slab.zarr"
+    argv = ["simulate", str(scan), "--shape", *map(str, shape), "--angles", "2", "--positions", "1"]
+    assert cli.main(argv) == 0
+    ph = phantom_from_json(xr.open_zarr(scan).attrs["simulation_phantom"])
+    height = shape[0] * xr.open_zarr(scan).attrs["pixel_size_m"]
+    assert len(ph.spheres) >= 3
+    assert all(abs(sp.y_m) + sp.radius_m <= 0.5 * height for sp in ph.spheres)
+
+
 def test_mist_scan_combines_four_positions_and_records_its_material(tiny_scan, tmp_path, capsys):
     assert cli.main(["retrieve", str(tiny_scan), str(tmp_path / "no.zarr"), "--method", "mist"]) != 0
     assert "mist needs K >= 4" in capsys.readouterr().err.strip().splitlines()[-1]
