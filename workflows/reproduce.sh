@@ -9,6 +9,7 @@
 #   detector_defects.* ~6 min: PWF with zingers in the images, defect test on and off
 #   authors_release.*  ~10 min: pwf-dask against the authors' released choices, 4 scenes
 #   drift_baselines.*  ~1 min: UMPA and LCS with a drifting diffuser, correction off and on
+#   calibration_dose.* ~5 min: coherence-length calibration and PWF against dose, true vs calibrated
 set -euo pipefail
 PWF=${PWF:-.venv/bin/pwf-dask}
 OUT=${OUT:-workflows/results}
@@ -21,7 +22,8 @@ case "${1:-all}" in
   defects) "$(dirname "$PWF")/python" workflows/detector_defects.py --out "$OUT" ;;
   authors) "$(dirname "$PWF")/python" workflows/authors_release.py --out "$OUT" ;;
   drift) "$(dirname "$PWF")/python" workflows/drift_baselines.py --out "$OUT" ;;
+  calibration) "$(dirname "$PWF")/python" workflows/calibration_dose.py --out "$OUT" ;;
   all)
-    for b in accuracy stability iteration scan bead defects authors drift; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|stability|iteration|scan|bead|defects|authors|drift|all]" >&2; exit 2 ;;
+    for b in accuracy stability iteration scan bead defects authors drift calibration; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|stability|iteration|scan|bead|defects|authors|drift|calibration|all]" >&2; exit 2 ;;
 esac
