@@ -92,6 +92,7 @@ def _simulate(args) -> int:
         diffuser_upstream_m=args.diffuser_upstream_m,
         zingers=args.zingers,
         diffuser_drift_px=tuple(args.diffuser_drift_px),
+        cylinder_width_fraction=args.cylinder_width_fraction,
     )
     print(f"wrote scan {path}")
     return 0
@@ -316,6 +317,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=(0.0, 0.0),
         metavar=("DY", "DX"),
         help="the diffuser drifts linearly from its reference position to (DY, DX) pixels at the last angle",
+    )
+    s.add_argument(
+        "--cylinder-width-fraction",
+        type=float,
+        metavar="F",
+        help="the sample cylinder's diameter over the frame width (default 0.576); above 1 the sample "
+        "is wider than the field of view (an interior scan)",
     )
     s.set_defaults(func=_simulate)
     i = sub.add_parser("ingest", help="TIFF or HDF5 detector files into a scan store (CONTRACT §1)")

@@ -460,16 +460,36 @@ def refractive_index_volume(phantom: Phantom, y_m, v_m, u_m, energy_eV: float, s
     return delta / n, beta / n
 
 
-def scan_phantom(shape: tuple[int, int], pixel_size_m: float, seed: int = 0) -> Phantom:
+#: the cylinder diameter of :func:`scan_phantom` over the frame width (0.8 x default_phantom's 0.72)
+SCAN_CYLINDER_WIDTH_FRACTION = 0.8 * 0.72
+
+
+def scan_phantom(
+    shape: tuple[int, int], pixel_size_m: float, seed: int = 0, cylinder_width_fraction: float | None = None
+) -> Phantom:
     """The phantom :func:`simulate_scan` draws for a frame of ``shape`` and its ``seed``: the
-    cylinder spans 0.8 of the width (times the default fraction), one bead per 12 rows (>= 3)."""
+    cylinder spans :data:`SCAN_CYLINDER_WIDTH_FRACTION` of the width, one bead per 12 rows (>= 3).
+
+    ``cylinder_width_fraction`` widens (or narrows) the cylinder alone; the beads stay where
+    the default draws them, inside the field of view. Above 1 the sample is wider than the
+    field of view at every angle: an interior (local) scan.
+    """
     ny, nx = shape
-    return default_phantom(
+    phantom = default_phantom(
         0.8 * nx * pixel_size_m,
         np.random.default_rng(seed + 1000),
         height_m=ny * pixel_size_m,
         n_beads=max(3, ny // 12),
     )
+    if cylinder_width_fraction is None:
+        return phantom
+    radius = 0.5 * cylinder_width_fraction * nx * pixel_size_m
+    if any(np.hypot(s.u_m, s.v_m) + s.radius_m > radius for s in phantom.spheres):
+        raise ValueError(
+            f"cylinder_width_fraction {cylinder_width_fraction} is too small for the beads: use at least "
+            f"{SCAN_CYLINDER_WIDTH_FRACTION:.3f}"
+        )
+    return replace(phantom, cylinder_radius_m=radius)
 
 
 PRESETS: dict[str, dict] = {
@@ -496,6 +516,7 @@ def simulate_scan(
     diffuser_upstream_m: float = 0.0,
     zingers: float = 0.0,
     diffuser_drift_px: tuple[float, float] = (0.0, 0.0),
+    cylinder_width_fraction: float | None = None,
     progress: bool = True,
 ) -> str:
     """Simulate a whole scan into a Zarr store (CONTRACT §1) and return its path.
@@ -510,7 +531,9 @@ def simulate_scan(
     X-ray on the sensor; :mod:`pwf_dask.detector`). ``diffuser_drift_px`` = (dy, dx): the
     diffuser drifts linearly in time from where it was for the reference to that far (detector
     pixels) at the last angle (thermal drift; :func:`pwf_dask.calibration.speckle_drift_px`).
-    The phantom and the truth are recorded in the attributes.
+    ``cylinder_width_fraction``: the cylinder's diameter over the frame width (default
+    :data:`SCAN_CYLINDER_WIDTH_FRACTION`); above 1 the scan is an interior scan
+    (:func:`scan_phantom`). The phantom and the truth are recorded in the attributes.
     """
     from . import scan_io
 
@@ -529,6 +552,8 @@ def simulate_scan(
     drift = np.asarray(diffuser_drift_px, float)
     if drift.shape != (2,) or not np.all(np.isfinite(drift)):
         raise ValueError(f"simulate: diffuser_drift_px is a finite (dy, dx) pair, got {diffuser_drift_px!r}")
+    if cylinder_width_fraction is not None and not 0 < cylinder_width_fraction <= 10:
+        raise ValueError(f"simulate: cylinder_width_fraction is in (0, 10], got {cylinder_width_fraction}")
     if not 0 <= zingers < 0.1:
         raise ValueError(f"simulate: zingers is a fraction of the pixels in [0, 0.1), got {zingers}")
     setup = SpeckleSetup(shape=shape, photons=photons)
@@ -536,7 +561,7 @@ def simulate_scan(
         setup = replace(setup, sample_diffuser_distance_m=0.0, diffuser_upstream_m=diffuser_upstream_m)
     p = setup.pixel_size_m
     setup.rotation_axis_offset_m = rotation_axis_offset_px * p
-    phantom = scan_phantom(shape, p, seed)
+    phantom = scan_phantom(shape, p, seed, cylinder_width_fraction)
     angles_deg = np.linspace(0.0, 180.0, n_ang)
     attrs = {
         "energy_eV": setup.energy_eV,
