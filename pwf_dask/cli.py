@@ -93,6 +93,7 @@ def _simulate(args) -> int:
         zingers=args.zingers,
         diffuser_drift_px=tuple(args.diffuser_drift_px),
         cylinder_width_fraction=args.cylinder_width_fraction,
+        dark_field_px=args.dark_field_px,
     )
     print(f"wrote scan {path}")
     return 0
@@ -324,6 +325,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="F",
         help="the sample cylinder's diameter over the frame width (default 0.576); above 1 the sample "
         "is wider than the field of view (an interior scan)",
+    )
+    s.add_argument(
+        "--dark-field-px",
+        type=float,
+        default=0.0,
+        metavar="SIGMA",
+        help="the sample scatters at small angles (pores, fibres): the speckle behind its thickest part "
+        "is blurred by a Gaussian of this sigma in pixels",
     )
     s.set_defaults(func=_simulate)
     i = sub.add_parser("ingest", help="TIFF or HDF5 detector files into a scan store (CONTRACT §1)")

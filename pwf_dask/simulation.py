@@ -255,6 +255,31 @@ class SpeckleSetup:
         return fine, x, y
 
 
+def dark_field_blur(intensity: np.ndarray, sigma_px: np.ndarray, levels: int = 9) -> np.ndarray:
+    """``intensity`` under a Gaussian blur whose sigma (pixels of that grid) varies over it.
+
+    Small-angle scattering by structure below the resolution (pores and fibres of wood or
+    cork) spreads the beam over angles; behind the diffuser a tilt moves the speckle by the
+    angle times L2, so the sample's footprint sees its speckle blurred and less visible: the
+    dark-field signal, which UMPA's and MIST's models carry and PWF's does not. The blur is
+    interpolated linearly between ``levels`` uniform ones (periodic, as the grid is).
+    """
+    from scipy import ndimage
+
+    top = float(np.max(sigma_px))
+    if top <= 0:
+        return intensity
+    pos = np.clip(np.asarray(sigma_px) / top * (levels - 1), 0.0, levels - 1)
+    low = np.minimum(np.floor(pos).astype(int), levels - 2)
+    frac = pos - low
+    out = np.zeros_like(intensity)
+    for j, sigma in enumerate(np.linspace(0.0, top, levels)):
+        weight = np.where(low == j, 1.0 - frac, 0.0) + np.where(low == j - 1, frac, 0.0)
+        if weight.any():
+            out += weight * (ndimage.gaussian_filter(intensity, sigma, mode="wrap") if sigma else intensity)
+    return out
+
+
 class SpeckleSimulator:
     """Forward simulation of sample and reference speckle images for one set-up and diffuser.
 
@@ -327,8 +352,14 @@ class SpeckleSimulator:
         a = a.reshape(a.shape[0] // s, s, a.shape[1] // s, s).mean(axis=(1, 3))
         return a[m : m + ny, m : m + nx]
 
-    def intensity(self, sample_field: np.ndarray | None, diffuser: np.ndarray) -> np.ndarray:
-        """Noise-free detector intensity (flat = 1) for a fine-grid sample field (None: reference)."""
+    def intensity(
+        self, sample_field: np.ndarray | None, diffuser: np.ndarray, dark_field_sigma_px: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Noise-free detector intensity (flat = 1) for a fine-grid sample field (None: reference).
+
+        ``dark_field_sigma_px``: the sample's small-angle scattering, a fine-grid map of the
+        speckle blur sigma in detector pixels (:func:`dark_field_blur`); None: none.
+        """
         fft = self.fft
         if self.kernel_upstream is not None:
             # diffuser -> free space -> sample -> L2: the sample is lit by developed speckle,
@@ -350,7 +381,18 @@ class SpeckleSimulator:
         inten = np.abs(v) ** 2
         if self.iotf is not None:
             inten = fft.irfft2(fft.rfft2(inten) * self.iotf, s=self.fine_shape)
+        if dark_field_sigma_px is not None:
+            inten = dark_field_blur(inten, dark_field_sigma_px * self.setup.oversample)
         return self._bin(inten)
+
+    def dark_field_sigma_px(self, psi: np.ndarray, dark_field_px: float) -> np.ndarray | None:
+        """The speckle blur map of a sample (fine grid, detector pixels): ``dark_field_px``
+        behind its thickest part, growing as the square root of the projected thickness (the
+        angular spread of multiple small-angle scattering), the phase standing for thickness."""
+        if not dark_field_px:
+            return None
+        thick = np.abs(psi.imag)
+        return dark_field_px * np.sqrt(thick / thick.max()) if thick.max() > 0 else None
 
     def sample_field(self, phantom: Phantom, angle_deg: float = 0.0):
         d_int, b_int = phantom.line_integrals(angle_deg, self.x, self.y, self.setup.energy_eV)
@@ -517,6 +559,7 @@ def simulate_scan(
     zingers: float = 0.0,
     diffuser_drift_px: tuple[float, float] = (0.0, 0.0),
     cylinder_width_fraction: float | None = None,
+    dark_field_px: float = 0.0,
     progress: bool = True,
 ) -> str:
     """Simulate a whole scan into a Zarr store (CONTRACT §1) and return its path.
@@ -533,7 +576,9 @@ def simulate_scan(
     pixels) at the last angle (thermal drift; :func:`pwf_dask.calibration.speckle_drift_px`).
     ``cylinder_width_fraction``: the cylinder's diameter over the frame width (default
     :data:`SCAN_CYLINDER_WIDTH_FRACTION`); above 1 the scan is an interior scan
-    (:func:`scan_phantom`). The phantom and the truth are recorded in the attributes.
+    (:func:`scan_phantom`). ``dark_field_px`` > 0: the sample scatters at small angles and
+    blurs the speckle behind its thickest part by a Gaussian of that sigma (detector pixels;
+    :func:`dark_field_blur`). The phantom and the truth are recorded in the attributes.
     """
     from . import scan_io
 
@@ -554,6 +599,8 @@ def simulate_scan(
         raise ValueError(f"simulate: diffuser_drift_px is a finite (dy, dx) pair, got {diffuser_drift_px!r}")
     if cylinder_width_fraction is not None and not 0 < cylinder_width_fraction <= 10:
         raise ValueError(f"simulate: cylinder_width_fraction is in (0, 10], got {cylinder_width_fraction}")
+    if not 0 <= dark_field_px <= 20:
+        raise ValueError(f"simulate: dark_field_px is a blur sigma in [0, 20] px, got {dark_field_px}")
     if not 0 <= zingers < 0.1:
         raise ValueError(f"simulate: zingers is a fraction of the pixels in [0, 0.1), got {zingers}")
     setup = SpeckleSetup(shape=shape, photons=photons)
@@ -578,6 +625,7 @@ def simulate_scan(
         "simulation_rotation_axis_offset_m": setup.rotation_axis_offset_m,
         "simulation_diffuser_upstream_m": setup.diffuser_upstream_m,
         "simulation_zingers": zingers,
+        "simulation_dark_field_px": float(dark_field_px),
         "simulation_diffuser_drift_y_px": float(diffuser_drift_px[0]),
         "simulation_diffuser_drift_x_px": float(diffuser_drift_px[1]),
         "simulation_phantom": phantom_to_json(phantom),
@@ -627,9 +675,9 @@ def simulate_scan(
         t = sim.diffuser()
         g["reference"][k] = detect(sim.intensity(None, t))
         for a, ang in enumerate(angles_deg):
-            fld, _ = sim.sample_field(phantom, float(ang))
+            fld, psi = sim.sample_field(phantom, float(ang))
             t_a = sim.diffuser(tuple(drift * a / (n_ang - 1))) if drift.any() else t
-            g["projections"][k, a] = detect(sim.intensity(fld, t_a))
+            g["projections"][k, a] = detect(sim.intensity(fld, t_a, sim.dark_field_sigma_px(psi, dark_field_px)))
             done += 1
             if progress and (done % max(1, total // 20) == 0 or done == total):
                 print(f"\rsimulating projections: {done}/{total}", end="", file=__import__("sys").stderr)

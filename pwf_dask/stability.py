@@ -58,6 +58,7 @@ AXES: dict[str, list] = {
     "geometry": ["L1 = 3 mm", "L1 = 0", "diffuser 5 mm upstream", "diffuser 20 mm upstream"],
     "ablation": ["none", "no preconditioner", "gamma = 0", "alpha = 0"],
     "bead_radius_px": [4.0, 8.0, 16.0, 32.0],
+    "dark_field_px": [0.0, 0.5, 1.0, 2.0],
 }
 PWF_ONLY_AXES = ("coherence_error", "ablation")
 
@@ -131,6 +132,7 @@ class Scene:
         positions: int,
         seed: int = 0,
         absorption_factor: float = 1.0,
+        dark_field_px: float = 0.0,
     ):
         self.setup = setup
         sim = SpeckleSimulator(setup, seed=seed)
@@ -141,7 +143,8 @@ class Scene:
         self.phase = sim._bin(psi.imag)
         self.attenuation = sim._bin(-psi.real)
         shifts = [(7 * k, 13 * k) for k in range(positions)]
-        self.clean_samples = np.array([sim.intensity(field_, sim.diffuser(s)) for s in shifts])
+        blur = sim.dark_field_sigma_px(psi, dark_field_px)
+        self.clean_samples = np.array([sim.intensity(field_, sim.diffuser(s), blur) for s in shifts])
         self.clean_references = np.array([sim.intensity(None, sim.diffuser(s)) for s in shifts])
         self.background = np.abs(self.phase) < 1e-6 * max(np.abs(self.phase).max(), 1e-30)
         self.bead = bead_regions(sim, phantom, phase_factor)
@@ -222,8 +225,8 @@ def errors(phase, attenuation, truth_phase, truth_attenuation, background, bead=
 
 def _point_setups(axis: str, value, base: SpeckleSetup):
     """(setup, lateral_scale, max phase target or None, absorption factor, photons, PWF
-    overrides) for one point."""
-    setup, lateral, target, absorption, photons, pwf = base, 1.0, None, 1.0, base.photons, {}
+    overrides, dark-field blur in px) for one point."""
+    setup, lateral, target, absorption, photons, pwf, dark = base, 1.0, None, 1.0, base.photons, {}, 0.0
     if axis == "dose":
         photons = float(value)
     elif axis == "max_phase_pi":
@@ -262,9 +265,11 @@ def _point_setups(axis: str, value, base: SpeckleSetup):
         }[value]
     elif axis == "bead_radius_px":
         pass  # the phantom changes (stability_map), not the set-up
+    elif axis == "dark_field_px":
+        dark = float(value)
     else:
         raise ValueError(f"unknown stability axis {axis!r}: choose one of {', '.join(AXES)}")
-    return setup, lateral, target, absorption, photons, pwf
+    return setup, lateral, target, absorption, photons, pwf, dark
 
 
 def stability_map(
@@ -283,25 +288,25 @@ def stability_map(
     kmax = max(k for _, _, k, _ in methods)
     scenes: dict[tuple, Scene] = {}
 
-    def scene_for(setup, phantom, lateral, factor, absorption) -> Scene:
+    def scene_for(setup, phantom, lateral, factor, absorption, dark=0.0) -> Scene:
         # the dose, coherence and ablation points share the base scene: simulate it once
-        key = (repr(setup), phantom, lateral, factor, absorption)
+        key = (repr(setup), phantom, lateral, factor, absorption, dark)
         if key not in scenes:
-            scenes[key] = Scene(setup, phantom, factor, kmax, seed, absorption)
+            scenes[key] = Scene(setup, phantom, factor, kmax, seed, absorption, dark)
         return scenes[key]
 
     base_max_phase = float(np.abs(scene_for(base, phantom0, 1.0, 1.0, 1.0).phase).max())
     rows = []
     for axis, values in axes.items():
         for value in values:
-            setup, lateral, target, absorption, photons, pwf_over = _point_setups(axis, value, base)
+            setup, lateral, target, absorption, photons, pwf_over, dark = _point_setups(axis, value, base)
             phantom = scaled_phantom(phantom0, lateral) if lateral != 1.0 else phantom0
             if axis == "bead_radius_px":
                 phantom = replace(phantom0, spheres=(single_bead(phantom0, float(value) * base.pixel_size_m),))
             # the gradient axis keeps the base's largest phase; thickness sets it
             factor = 1.0 / lateral if target is None else target * np.pi / base_max_phase
             runs = [m for m in methods if m[1] == "pwf"] if axis in PWF_ONLY_AXES else methods
-            scene = scene_for(setup, phantom, lateral, factor, absorption)
+            scene = scene_for(setup, phantom, lateral, factor, absorption, dark)
             wl = optics.wavelength_m(setup.energy_eV)
             l2 = setup.diffuser_detector_distance_m
             point = {
@@ -396,6 +401,7 @@ UNITS = {
     "coherence_error": "relative",
     "ablation": "",
     "bead_radius_px": "px",
+    "dark_field_px": "px of speckle blur behind the thickest part",
 }
 
 

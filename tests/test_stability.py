@@ -4,9 +4,10 @@ import csv
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from pwf_dask import optics, stability
-from pwf_dask.simulation import Phantom, Sphere
+from pwf_dask.simulation import Phantom, Sphere, dark_field_blur
 
 
 def test_speckle_grain_of_gaussian_correlated_field():
@@ -82,3 +83,57 @@ def test_bead_contrast_error_is_local_and_signed():
     assert 0.5 < share <= 1
     assert stability.bead_contrast_error(deeper, truth, bead) == pytest.approx(0.2 * share, rel=1e-9)
     assert np.isnan(stability.bead_contrast_error(truth, truth, stability.bead_regions(sim, cyl)))
+
+
+def test_dark_field_blur_damps_fringes_as_a_gaussian():
+    """A Gaussian blur of sigma multiplies fringes of period P by exp(-2 pi^2 sigma^2 / P^2);
+    with sigma growing down the frame, each row keeps the factor of its own sigma, the mean
+    stays, and no blur is the image itself."""
+    ny, nx, period = 64, 128, 8.0
+    xx = np.arange(nx)[None, :]
+    image = np.repeat(1.0 + 0.5 * np.cos(2 * np.pi * xx / period), ny, axis=0)
+    sigma = np.repeat(np.linspace(0.0, 2.0, ny)[:, None], nx, axis=1)
+    out = dark_field_blur(image, sigma)
+    amplitude = np.abs(np.fft.rfft(out, axis=1)[:, int(nx / period)]) * 2 / nx
+    expected = 0.5 * np.exp(-2 * np.pi**2 * sigma[:, 0] ** 2 / period**2)
+    np.testing.assert_allclose(amplitude, expected, atol=0.01)
+    assert amplitude[-1] < 0.3 * amplitude[0]
+    np.testing.assert_allclose(out.mean(axis=1), 1.0, atol=1e-9)
+    assert dark_field_blur(image, np.zeros_like(image)) is image
+    np.testing.assert_allclose(
+        dark_field_blur(image, np.full_like(image, 1.3)), ndimage.gaussian_filter(image, 1.3, mode="wrap"), atol=1e-12
+    )
+
+
+def test_dark_field_of_a_scene_acts_behind_the_sample_only():
+    """Noise-free: the sample-free pixels see the speckle without dark field exactly, the
+    sample's footprint sees less contrast, and 0 px is the scene without it."""
+    setup = stability.SpeckleSetup(shape=(64, 64), oversample=2, margin_px=8)
+    ph = Phantom(cylinder_radius_m=12e-6)
+    plain = stability.Scene(setup, ph, 1.0, 1)
+    none = stability.Scene(setup, ph, 1.0, 1, dark_field_px=0.0)
+    blurred = stability.Scene(setup, ph, 1.0, 1, dark_field_px=2.0)
+    np.testing.assert_array_equal(none.clean_samples, plain.clean_samples)
+    free = np.abs(plain.sim._bin(plain.sim.sample_field(ph)[1].imag)) == 0
+    free &= np.roll(free, 1, axis=1) & np.roll(free, -1, axis=1)  # no fine pixel of the sample in them
+    assert free.sum() > 500
+    np.testing.assert_array_equal(blurred.clean_samples[0][free], plain.clean_samples[0][free])
+    core = np.abs(plain.phase) > 0.7 * np.abs(plain.phase).max()
+    assert blurred.clean_samples[0][core].std() < 0.8 * plain.clean_samples[0][core].std()
+
+
+def test_dark_field_fails_pwf_and_not_umpa_k12():
+    """PWF's model has no visibility term: the lost speckle contrast behind a scattering
+    sample comes back as extra phase (gain well above 1), while UMPA's window correlation
+    with 12 images finds the shifts whatever the contrast (README, Stability map)."""
+    methods = [stability.METHOD_RUNS[0], stability.METHOD_RUNS[3]]
+    rows = stability.stability_map(
+        shape=(128, 128), axes={"dark_field_px": [0.0, 2.0]}, methods=methods, progress=False
+    )
+    got = {(r["value"], r["method"]): r for r in rows}
+    threshold = stability.PHASE_ERROR_THRESHOLD
+    assert got[0.0, "PWF K=1"]["phase_error"] < threshold
+    assert got[2.0, "PWF K=1"]["phase_error"] > threshold
+    assert got[2.0, "PWF K=1"]["phase_gain"] > 1.2
+    assert got[0.0, "UMPA K=12 w5"]["phase_error"] < threshold
+    assert got[2.0, "UMPA K=12 w5"]["phase_error"] < threshold

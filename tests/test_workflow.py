@@ -398,3 +398,20 @@ def test_interior_scan_keeps_the_level_of_delta(interior_recon):
     dc, _ = delta_beta("cellulose", ds.attrs["energy_eV"])
     matrix = truth[:, seen] == dc
     assert float(np.median(ds.delta[0].values[:, seen][matrix])) == pytest.approx(dc, rel=0.1)
+
+
+def test_simulated_dark_field_blurs_the_speckle_behind_the_sample_only(tmp_path):
+    """``simulate --dark-field-px``: behind the sample the speckle loses contrast, beside it
+    it keeps it, and the reference is untouched (noise-free: test_stability)."""
+    args = ["--shape", "48", "96", "--angles", "2", "--positions", "1", "--corrected", "--seed", "4"]
+    assert cli.main(["simulate", str(tmp_path / "a.zarr"), *args]) == 0
+    assert cli.main(["simulate", str(tmp_path / "b.zarr"), *args, "--dark-field-px", "2"]) == 0
+    a, b = xr.open_zarr(tmp_path / "a.zarr"), xr.open_zarr(tmp_path / "b.zarr")
+    assert b.attrs["simulation_dark_field_px"] == 2.0
+    np.testing.assert_array_equal(a.reference.values, b.reference.values)
+    pa, pb = a.projections.values[0], b.projections.values[0]
+    side = slice(0, 12)  # the cylinder spans the middle 0.58 of the width
+    assert pb[..., side].std() == pytest.approx(pa[..., side].std(), rel=0.05)
+    middle = slice(40, 56)
+    assert pb[..., middle].std() < 0.8 * pa[..., middle].std()
+    assert pb[..., middle].mean() == pytest.approx(pa[..., middle].mean(), rel=0.02)
