@@ -71,6 +71,43 @@ def default_fft_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+#: arrays up to this size are recycled by the C allocator instead of mapped afresh
+#: (:func:`recycle_large_arrays`)
+_RECYCLED_ARRAY_BYTES = 1 << 30
+_recycling: bool | None = None  # None: not tried yet in this process
+
+
+def recycle_large_arrays() -> bool:
+    """Let glibc's malloc reuse freed arrays of up to 1 GiB; True when it is in effect.
+
+    glibc serves an allocation above its mmap threshold (128 kB, raised as large blocks are
+    freed, but never past 32 MB) with fresh pages from the kernel and returns them when it is
+    freed, so every temporary of a 2048^2 complex64 field (32 MB) pays a page fault and a
+    zeroing per 4 kB page. Measured here at 2048^2, 2 threads: a complex-by-real product
+    7.6 -> 4.7 ms, |v|^2 8.3 -> 3.4 ms, one whole PWF iteration 380-400 -> 276-280 ms
+    (iteration / FFT 20.5 -> 16.4); 1024^2 and below barely move. The cost: memory a task
+    freed stays with the process for the next task instead of going back to the system, so
+    a worker's resident size stays at its peak (the peak itself is unchanged). Called once
+    per process by :meth:`FFT.for_module` for NumPy; ``PWF_DASK_RECYCLE_ARRAYS=0`` leaves the
+    allocator alone, and so does any C library without glibc's ``mallopt``.
+    """
+    global _recycling
+    if _recycling is None:
+        _recycling = os.environ.get("PWF_DASK_RECYCLE_ARRAYS", "1") != "0" and _raise_mmap_threshold()
+    return _recycling
+
+
+def _raise_mmap_threshold() -> bool:
+    try:
+        import ctypes
+
+        mallopt = ctypes.CDLL(None).mallopt  # the process's own C library
+    except (OSError, AttributeError, TypeError):  # no mallopt: macOS, Windows
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's <malloc.h>
+    return bool(mallopt(m_mmap_threshold, _RECYCLED_ARRAY_BYTES) and mallopt(m_trim_threshold, _RECYCLED_ARRAY_BYTES))
+
+
 #: inputs of fewer points than this (a stack counts whole, a half spectrum as it is) are
 #: transformed on one thread whatever the budget
 _THREADED_FFT_MIN_POINTS = 1 << 16
@@ -85,6 +122,8 @@ class FFT:
 
     @classmethod
     def for_module(cls, xp: ModuleType, workers: int | None = None) -> FFT:
+        if xp is np:
+            recycle_large_arrays()
         return cls(xp, default_fft_workers() if workers is None else max(1, int(workers)))
 
     def _cpu(self) -> bool:
@@ -171,15 +210,37 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_pool_in_child)
 
 
+#: elements per block of :func:`_complex_exp_into`: its three float buffers stay in L2 cache
+_EXP_BLOCK = 1 << 16
+
+
 def _complex_exp_into(z, out) -> None:
-    mag = np.exp(z.real)
-    np.multiply(mag, np.cos(z.imag), out=out.real)
-    np.multiply(mag, np.sin(z.imag), out=out.imag)
+    """out = exp(Re z) (cos Im z + i sin Im z), block by block.
+
+    NumPy's SIMD exp/cos/sin loops need contiguous operands: on the interleaved Re/Im views
+    they take the strided scalar path (exp 6x, cos 2x slower at 2048^2 here). Copying each
+    part into a small contiguous buffer first, and working through the array in blocks that
+    stay in cache, made the whole pass 3x faster (36 -> 11 ms at 2048^2, one thread), with
+    the same ufuncs on the same values: bitwise the same result.
+    """
+    fz, fo = z.reshape(-1), out.reshape(-1)
+    size = min(_EXP_BLOCK, fz.size)
+    mag, arg, trig = (np.empty(size, dtype=z.real.dtype) for _ in range(3))
+    for start in range(0, fz.size, size):
+        zb, ob = fz[start : start + size], fo[start : start + size]
+        m, a, c = mag[: zb.size], arg[: zb.size], trig[: zb.size]
+        np.copyto(m, zb.real)
+        np.exp(m, out=m)
+        np.copyto(a, zb.imag)
+        np.cos(a, out=c)
+        np.multiply(m, c, out=ob.real)
+        np.sin(a, out=c)
+        np.multiply(m, c, out=ob.imag)
 
 
 def complex_exp(z, workers: int = 1):
-    """exp(z) for complex arrays. NumPy's complex64 exp is ~5x slower than exp(Re) (cos, sin)
-    of the float32 parts (12.7 vs 2.7 ms at 512^2 here); CuPy's fused kernel is used as is.
+    """exp(z) for complex arrays. NumPy's complex64 exp is ~10x slower than exp(Re) (cos, sin)
+    of the float32 parts (:func:`_complex_exp_into`); CuPy's fused kernel is used as is.
 
     On the CPU, ``workers`` > 1 splits the rows over that many threads (NumPy releases the
     GIL in ufuncs): this is the costliest element-wise pass of an iteration (about one FFT
@@ -189,7 +250,8 @@ def complex_exp(z, workers: int = 1):
     xp = get_array_module(z)
     if xp is not np:
         return xp.exp(z)
-    out = np.empty_like(z)
+    z = np.ascontiguousarray(z)  # the blocks are runs of the flat array (_complex_exp_into)
+    out = np.empty(z.shape, dtype=z.dtype)
     blocks = min(int(workers), z.shape[0]) if z.ndim >= 1 else 1
     if blocks <= 1 or z.size < 1 << 16:
         _complex_exp_into(z, out)

@@ -1,5 +1,8 @@
 """The Wirtinger derivative, the objective's consistency and the safe step."""
 
+import os
+import platform
+
 import numpy as np
 import pytest
 
@@ -219,6 +222,24 @@ def test_threaded_complex_exp_is_bitwise_the_serial_one():
     serial = complex_exp(z)
     assert np.array_equal(complex_exp(z, workers=3).view(np.float32), serial.view(np.float32))
     np.testing.assert_allclose(serial, np.exp(z.astype(np.complex128)), rtol=1e-6)
+    # blocks run over the flat array: a strided view is computed as its contiguous copy
+    assert np.array_equal(complex_exp(z.T[::2], workers=2), serial.T[::2])
+    z64 = z.astype(np.complex128)
+    np.testing.assert_allclose(complex_exp(z64, workers=2), np.exp(z64), rtol=1e-13)
+
+
+def test_large_arrays_are_recycled_unless_switched_off():
+    """glibc's mmap threshold is raised once per process (backend.recycle_large_arrays);
+    PWF_DASK_RECYCLE_ARRAYS=0 leaves the allocator as it was."""
+    import subprocess
+    import sys
+
+    code = "import numpy as np; from pwf_dask import backend; backend.FFT.for_module(np); print(backend._recycling)"
+    env = {**os.environ, "PWF_DASK_RECYCLE_ARRAYS": "0"}
+    off = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert off.stdout.strip() == "False"
+    on = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert on.stdout.strip() == ("True" if platform.libc_ver()[0] == "glibc" else "False")
 
 
 @pytest.mark.parametrize("l1", [3e-3, 0.0])
