@@ -145,6 +145,7 @@ def _retrieval_kwargs(args) -> dict:
         sample_delta_over_beta=args.sample_delta_over_beta,
         outlier_sigma=args.outlier_sigma,
         diffuser_drift=args.diffuser_drift,
+        angle_chain=args.angle_chain,
     )
 
 
@@ -229,6 +230,7 @@ def _compute_options(p: argparse.ArgumentParser) -> None:
 def _retrieval_options(p: argparse.ArgumentParser) -> None:
     from .detector import DEFAULT_OUTLIER_SIGMA
     from .solver import DEFAULT_ALPHA, PAPER_TOL
+    from .workflow import DEFAULT_ANGLE_CHAIN
 
     p.add_argument("--method", default="pwf", choices=["pwf", "lcs", "umpa", "gf", "mist"])
     p.add_argument("--max-iter", type=int, default=2000)
@@ -277,6 +279,14 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
         default=DEFAULT_OUTLIER_SIGMA,
         help="detector defects: single-pixel spikes and dips (zingers, hot/dead pixels) beyond this many noise "
         "sigmas of all their neighbours are left out (sample) or repaired (reference); 0 keeps every pixel",
+    )
+    p.add_argument(
+        "--angle-chain",
+        type=int,
+        default=DEFAULT_ANGLE_CHAIN,
+        metavar="N",
+        help=f"pwf: each task retrieves N projections (every other angle), each started from the one before "
+        f"(default {DEFAULT_ANGLE_CHAIN}); 1 starts every projection from zero, as the paper does",
     )
     p.add_argument(
         "--diffuser-drift",

@@ -1,9 +1,10 @@
-"""The scan pipeline on Dask: retrieval per angle, tomography per row block, FSC (CONTRACT §2).
+"""The scan pipeline on Dask: retrieval per chain of angles, tomography per row block, FSC (CONTRACT §2).
 
 Every stage reads and writes the reconstruction store (:mod:`pwf_dask.scan_io`) and is
 resumable: retrieval recomputes only projections whose ``iterations`` is still -1 (written
-last by each task, after its phase and attenuation chunks); tomography recomputes only row
-blocks whose ``tomo_done`` flag is 0. A killed run loses at most the tasks in flight.
+last for each projection, after its phase and attenuation chunks); tomography recomputes
+only row blocks whose ``tomo_done`` flag is 0. A killed run loses at most the projections
+and row blocks in flight.
 Dask appears here and in :mod:`pwf_dask.cluster` only; the numerics stay pure functions.
 """
 
@@ -88,8 +89,12 @@ def _position_diffuser(scan_path, p, reference, attrs, coherence, options, devic
         return _DIFFUSERS[key]
 
 
-def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers, coherence):
-    """One projection: read, correct, retrieve, write its chunks, then its diagnostics."""
+def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers, coherence, start_from=None):
+    """One projection: read, correct, retrieve, write its chunks, then its diagnostics.
+
+    ``start_from`` (position, angle): PWF starts from that projection's stored result
+    (:func:`angle_chains`); None: from zero, as the paper does.
+    """
     import zarr
 
     from .retrieval import retrieve_projection
@@ -108,6 +113,11 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
         reference = _read_corrected(g, "reference", p, flat, dark, corrected)
     xp = resolve_device(device)
     extra = {}
+    if start_from is not None:
+        done = zarr.open_group(str(recon_path), mode="r", use_consolidated=False)
+        psi = -done["attenuation"][start_from].astype(np.complex64)
+        psi += 1j * done["phase"][start_from]
+        extra["initial"] = xp.asarray(psi)
     if options.get("method", "pwf") == "pwf":
         extra["diffuser"] = _position_diffuser(
             scan_path,
@@ -152,6 +162,45 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+#: projections per warm-start chain of the retrieval stage (``angle_chain``; README, Warm
+#: starts along the angles)
+DEFAULT_ANGLE_CHAIN = 8
+
+
+def angle_chains(angles_deg, n_positions: int, chain_length: int) -> list[list[tuple[int, int]]]:
+    """The retrieval stage's tasks: chains of (position, angle index), each in angle order.
+
+    Within a chain every projection after the first starts PWF from the one before (its
+    stored phase and attenuation), two angular steps away: the even and odd angles (in angle
+    order) and the diffuser positions stay in separate chains, so the halves and positions
+    that the FSC compares never share a start. The first projection of a chain starts from
+    zero; ``chain_length`` 1 is every projection from zero, the paper's procedure.
+    """
+    if int(chain_length) < 1:
+        raise ValueError(f"angle_chain is a number of projections >= 1, got {chain_length}")
+    order = np.argsort(np.asarray(angles_deg), kind="stable")
+    chains = []
+    for p in range(n_positions):
+        for half in (order[0::2], order[1::2]):
+            for s in range(0, len(half), int(chain_length)):
+                chains.append([(p, int(a)) for a in half[s : s + int(chain_length)]])
+    return chains
+
+
+def _retrieve_chain(chain, **task):
+    """The projections of one chain still missing, in order, each started from the stored
+    result of the one before it in the chain: a resumed chain starts where a killed one
+    stopped, from the same values."""
+    import zarr
+
+    done = zarr.open_group(task["recon_path"], mode="r", use_consolidated=False)["iterations"]
+    results = []
+    for i, item in enumerate(chain):
+        if int(done[item]) < 0:
+            results.append(_retrieve_task(item, start_from=chain[i - 1] if i else None, **task))
+    return results
+
+
 def retrieve_scan(
     scan_path,
     recon_path,
@@ -166,10 +215,12 @@ def retrieve_scan(
     step: float = 1.0,
     precision: str = "single",
     outlier_sigma: float | None = DEFAULT_OUTLIER_SIGMA,
+    angle_chain: int = DEFAULT_ANGLE_CHAIN,
     runner: Runner | None = None,
     **options,
 ) -> dict:
-    """Retrieval stage: every missing (position, angle) projection, one task each.
+    """Retrieval stage: every missing (position, angle) projection, one task per chain of
+    ``angle_chain`` projections (PWF; :func:`angle_chains`), one per projection otherwise.
 
     ``outlier_sigma`` is the detector-defect threshold of :func:`retrieve_projection`; the
     references are repaired with it before the coherence fit and the diffuser estimate.
@@ -181,6 +232,10 @@ def retrieve_scan(
     resolve_device(device)  # fail early on --device gpu without CuPy
     check_threshold(outlier_sigma)
     check_diffuser_drift(options.get("diffuser_drift", "auto"))
+    if int(angle_chain) < 1:
+        raise ValueError(f"angle_chain is a number of projections >= 1, got {angle_chain}")
+    # only PWF iterates from a start, and a start the user chose is kept for every projection
+    angle_chain = int(angle_chain) if method == "pwf" and "initial" not in options else 1
     alpha_c = complex(str(alpha).replace(" ", "")) if not isinstance(alpha, complex) else alpha
     ds, info = scan_io.open_scan(scan_path)
     if info.n_positions < MIN_POSITIONS.get(method, 1):
@@ -219,6 +274,7 @@ def retrieve_scan(
         "coherence_lengths_per_position_m": json.dumps(coherence) if method == "pwf" else "n/a",
         "coherence_calibrated": info.coherence_length_x_m is None or info.coherence_length_y_m is None,
         "pwf_dask_version": __version__,
+        "angle_chain": angle_chain,
         "diffuser_model": options.get("diffuser_model", "single-material") if method == "pwf" else "n/a",
         **{
             k: v
@@ -234,9 +290,12 @@ def retrieve_scan(
         )
     grp = scan_io.create_reconstruction(recon_path, info, params)
     done = grp["iterations"][...]
-    todo = [(int(p), int(a)) for p, a in zip(*np.nonzero(done < 0))]
+    chains = [
+        c for c in angle_chains(grp["angle"][...], done.shape[0], angle_chain) if any(done[item] < 0 for item in c)
+    ]
+    missing = int((done < 0).sum())
     print(
-        f"retrieve: {len(todo)} of {done.size} projections to compute ({done.size - len(todo)} already done)",
+        f"retrieve: {missing} of {done.size} projections to compute ({done.size - missing} already done)",
         file=sys.stderr,
     )
     opts = dict(
@@ -254,10 +313,10 @@ def retrieve_scan(
     own = runner is None
     runner = runner or Runner(scheduler)
     try:
-        results = runner.map(
-            _retrieve_task,
-            todo,
-            label="retrieval tasks",
+        chained = runner.map(
+            _retrieve_chain,
+            chains,
+            label="retrieval tasks (chains of projections)" if angle_chain > 1 else "retrieval tasks",
             scan_path=str(scan_path),
             recon_path=str(recon_path),
             options=opts,
@@ -268,6 +327,7 @@ def retrieve_scan(
     finally:
         if own:
             runner.close()
+    results = [r for chain in chained for r in chain]
     wall = time.perf_counter() - t0
     grp = zarr.open_group(str(recon_path), mode="r+", use_consolidated=False)
     if results:
