@@ -232,8 +232,7 @@ def retrieve_scan(
     resolve_device(device)  # fail early on --device gpu without CuPy
     check_threshold(outlier_sigma)
     check_diffuser_drift(options.get("diffuser_drift", "auto"))
-    if int(angle_chain) < 1:
-        raise ValueError(f"angle_chain is a number of projections >= 1, got {angle_chain}")
+    angle_chains((), 1, angle_chain)  # a bad length fails here, before anything is written
     # only PWF iterates from a start, and a start the user chose is kept for every projection
     angle_chain = int(angle_chain) if method == "pwf" and "initial" not in options else 1
     alpha_c = complex(str(alpha).replace(" ", "")) if not isinstance(alpha, complex) else alpha
