@@ -238,6 +238,7 @@ RECON_KEYS = (
     "normalization",
     "preconditioner",
     "outlier_sigma",
+    "angle_chain",  # stores made before session 18 lack it and resume with any chain length
 )
 
 

@@ -150,6 +150,8 @@ def test_resume_refuses_other_parameters(tiny_scan, tmp_path):
     workflow.retrieve_scan(tiny_scan, recon, **FAST)
     with pytest.raises(scan_io.ScanError, match="other parameters"):
         workflow.retrieve_scan(tiny_scan, recon, max_iter=30, tol=0.0)
+    with pytest.raises(scan_io.ScanError, match="angle_chain"):
+        workflow.retrieve_scan(tiny_scan, recon, angle_chain=1, **FAST)
 
 
 def test_zingers_in_raw_counts_are_counted_per_projection(tiny_scan, tmp_path, capsys):
