@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import optics, solver
+from . import optics, scan_io, solver, tomography
 from .backend import FFT, default_fft_workers, resolve_device
 from .retrieval import AUTHORS_RELEASE
 
@@ -284,7 +284,8 @@ def run_scan_benchmark(
     iteration count (so every run does the same work). The wall time of an 801 x 2160 x 2560
     scan on N workers is modelled as 801 x iterations x t_iter(2160 x 2560) / (N x scaling
     efficiency), with t_iter measured here on a full frame and the iterations PWF needed on the
-    simulated scenes (median, or ``full_iterations``).
+    simulated scenes (median, or ``full_iterations``); its tomography as 87 row-block tasks
+    of the time measured for one (:func:`_full_width_tomo_task_s`) over N x efficiency.
     """
     import shutil
     import tempfile
@@ -324,9 +325,18 @@ def run_scan_benchmark(
     full = iteration_benchmark((solver.fast_len(2160 + 34), solver.fast_len(2560 + 34)), repeat=1)
     iters = full_iterations or 300
     t_proj = full["iteration_ms"] / 1e3 * iters
+    t_tomo = _full_width_tomo_task_s()
+    blocks = -(-2160 // scan_io.row_block(2160, 2560))
     model = []
     for n in (1, 2, 8, 32, 128):
-        model.append({"workers": n, "hours": 801 * t_proj / (n * (eff if n > 1 else 1.0)) / 3600})
+        e = eff if n > 1 else 1.0
+        model.append(
+            {
+                "workers": n,
+                "hours": 801 * t_proj / (n * e) / 3600,
+                "tomo_hours": blocks * t_tomo / (n * e) / 3600,
+            }
+        )
     out = write_rows_csv(out_dir, "bench_scan_cpu.csv", rows)
     lines = [
         f"# Scan retrieval throughput ({full['device']})",
@@ -352,12 +362,31 @@ def run_scan_benchmark(
         f"One iteration on the padded full frame ({full['shape']}) measured here: {full['iteration_ms']:.0f} ms "
         f"({full['ratio']:.1f} FFT-times), so {t_proj / 60:.1f} min per projection on one worker.",
         "",
-        "| workers | modelled wall time (h) |",
-        "|---:|---:|",
+        f"Tomography: one task (FBP of one {scan_io.row_block(2160, 2560)}-row block, 2560 wide, to a 2560^2 grid) "
+        f"timed here from {_TOMO_BENCH_ANGLES} angles and scaled to 801 (the cost is linear in the angles): "
+        f"{t_tomo:.0f} s, {blocks} blocks per position.",
+        "",
+        "| workers | modelled retrieval (h) | modelled tomography (h) |",
+        "|---:|---:|---:|",
     ]
-    lines += [f"| {m['workers']} | {m['hours']:.2f} |" for m in model]
+    lines += [f"| {m['workers']} | {m['hours']:.2f} | {m['tomo_hours']:.2f} |" for m in model]
     (out / "bench_scan_cpu.md").write_text("\n".join(lines) + "\n")
     return rows
+
+
+#: angles of the timed full-width FBP task in :func:`run_scan_benchmark`
+_TOMO_BENCH_ANGLES = 41
+
+
+def _full_width_tomo_task_s(angles: int = _TOMO_BENCH_ANGLES, scan_angles: int = 801) -> float:
+    """Seconds of one tomography task of an 801 x 2160 x 2560 scan (one thread), from one
+    timed with ``angles`` angles: the backprojection is linear in the angles."""
+    rows = scan_io.row_block(2160, 2560)
+    sino = np.random.default_rng(0).random((angles, rows, 2560)).astype(np.float32)
+    theta = np.linspace(0.0, 180.0, angles, endpoint=False)
+    t0 = time.perf_counter()
+    tomography.filtered_back_projection(sino, theta, 0.65e-6, fft=FFT.for_module(np, 1))
+    return (time.perf_counter() - t0) * scan_angles / angles
 
 
 def _tomogram_errors(recon_path) -> dict:

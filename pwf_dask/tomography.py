@@ -46,6 +46,10 @@ def angle_weights(angles_deg) -> np.ndarray:
     return w
 
 
+#: output pixels per block of the CPU backprojection loop (:func:`filtered_back_projection`)
+_BACKPROJECT_BLOCK = 1 << 16
+
+
 def filtered_back_projection(
     sinogram,
     angles_deg,
@@ -78,23 +82,43 @@ def filtered_back_projection(
     else:
         spec = xp.fft.rfft(sino_p, n=size, axis=-1) * ramlak_filter(npad, xp)
         q = xp.fft.irfft(spec, n=size, axis=-1)[..., edge : edge + nx]
-    w = angle_weights(angles_deg)
+    # the angle weights folded into q, and two zero columns either side: a ray that leaves
+    # the detector reads zeros there, so the loop needs no masks; dq holds the slopes of the
+    # linear interpolation, q(t) = qz[i] + (t - floor t) dq[i]
+    w = xp.asarray(angle_weights(angles_deg), dtype=xp.float32)
+    qz = xp.zeros((na, nr, nx + 3), dtype=xp.float32)
+    qz[:, :, 1 : nx + 1] = q * w[:, None, None]
+    dq = qz[:, :, 1:] - qz[:, :, :-1]
     coords = (np.arange(n_out) - (n_out - 1) / 2) * pixel_size_m
-    u = xp.asarray(coords[None, :])
-    v = xp.asarray(coords[:, None])
+    u_all = xp.asarray(np.tile(coords, n_out))  # the output pixels, row after row
+    v_all = xp.asarray(np.repeat(coords, n_out))
     x0 = -(nx - 1) / 2 * pixel_size_m - center_offset_m  # x of column 0, measured from the axis
-    out = xp.zeros((nr, n_out, n_out), dtype=xp.float32)
-    th = np.deg2rad(np.asarray(angles_deg, np.float64))
-    for a in range(na):
-        t = (u * float(np.cos(th[a])) + v * float(np.sin(th[a])) - x0) / pixel_size_m
-        i0 = xp.floor(t).astype(xp.int64)
-        f = (t - i0).astype(xp.float32)
-        ok0 = (i0 >= 0) & (i0 < nx)
-        ok1 = (i0 + 1 >= 0) & (i0 + 1 < nx)
-        qa = q[a]
-        v0 = xp.where(ok0, qa[:, xp.clip(i0, 0, nx - 1)], 0)
-        v1 = xp.where(ok1, qa[:, xp.clip(i0 + 1, 0, nx - 1)], 0)
-        out += float(w[a]) * (v0 * (1 - f) + v1 * f)
+    out = xp.zeros((nr, n_out * n_out), dtype=xp.float32)
+    cos_th = np.cos(np.deg2rad(np.asarray(angles_deg, np.float64)))
+    sin_th = np.sin(np.deg2rad(np.asarray(angles_deg, np.float64)))
+    # on the CPU the pixels go in blocks whose gathers stay in cache (1.4x at 512^2), into one
+    # reused buffer; a GPU takes the whole slice at once
+    block = _BACKPROJECT_BLOCK if xp is np else n_out * n_out
+    gathered = xp.empty((nr, block), dtype=xp.float32) if xp is np else None
+    for start in range(0, n_out * n_out, block):
+        u, v = u_all[start : start + block], v_all[start : start + block]
+        acc = out[:, start : start + block]
+        for a in range(na):
+            t = (u * float(cos_th[a]) + v * float(sin_th[a]) - x0) / pixel_size_m
+            t = xp.clip(t, -1.0, float(nx))  # column -1 and nx read zeros
+            i0 = xp.floor(t)
+            f = (t - i0).astype(xp.float32)
+            idx = i0.astype(xp.intp) + 1  # qz's column of detector column i0
+            if xp is np:
+                g = gathered[:, : idx.size]  # mode="clip": raise would buffer out (indices are in range)
+                np.take(qz[a], idx, axis=1, out=g, mode="clip")
+                acc += g
+                np.take(dq[a], idx, axis=1, out=g, mode="clip")
+                g *= f
+                acc += g
+            else:
+                acc += xp.take(qz[a], idx, axis=1) + f * xp.take(dq[a], idx, axis=1)
+    out = out.reshape(nr, n_out, n_out)
     return out / pixel_size_m
 
 

@@ -28,6 +28,24 @@ def test_fbp_agrees_with_skimage_iradon(shepp):
     assert np.abs(ours - ref)[inside].max() < 1e-4 * np.abs(ref).max()
 
 
+def test_fbp_pixel_blocks_and_rays_leaving_the_detector(shepp, monkeypatch):
+    """The CPU loop's pixel blocks (a partial last one) give the single-block slices, rows are
+    independent, and a grid wider than the detector holds the detector-sized slice inside
+    (rays that leave the detector read zeros, with no masks)."""
+    _, theta, sino = shepp
+    stack = np.stack([sino.T, 0.5 * sino.T], axis=1)  # two rows
+    whole = tomography.filtered_back_projection(stack, theta, 1.0, center_offset_m=2.5, n_out=151)
+    monkeypatch.setattr(tomography, "_BACKPROJECT_BLOCK", 1000)
+    blocked = tomography.filtered_back_projection(stack, theta, 1.0, center_offset_m=2.5, n_out=151)
+    np.testing.assert_array_equal(blocked, whole)
+    np.testing.assert_allclose(whole[1], 0.5 * whole[0], rtol=1e-5, atol=1e-6 * np.abs(whole).max())
+    # a slice wider than the detector: inside the detector's circle it is the 95-pixel one
+    inner = tomography.filtered_back_projection(stack, theta, 1.0, center_offset_m=2.5, n_out=95)
+    c = np.arange(95) - 47.0
+    seen = np.hypot(*np.meshgrid(c, c)) < 47 - 2.5 - 1
+    np.testing.assert_allclose(whole[0][28:123, 28:123][seen], inner[0][seen], atol=1e-5 * np.abs(inner).max())
+
+
 def test_fbp_units_are_per_metre(shepp):
     img, theta, sino = shepp
     p = 2e-6
