@@ -528,7 +528,12 @@ def _speed_accuracy_plot(path, rows, pareto) -> None:
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     colors = {"pwf": "C0", "lcs": "C1", "umpa": "C2", "gf": "C3", "mist": "C4"}
+    placed: list[tuple[float, float]] = []  # log10 positions of the labelled points
     for i, r in enumerate(rows):
+        # labels of points close on the log-log chart go one under the other
+        here = (math.log10(r["wall_s"]), math.log10(r["delta_rmse_rel"]))
+        crowd = sum(abs(here[0] - x) < 0.15 and abs(here[1] - y) < 0.06 for x, y in placed)
+        placed.append(here)
         ax.scatter(
             r["wall_s"],
             r["delta_rmse_rel"],
@@ -538,7 +543,11 @@ def _speed_accuracy_plot(path, rows, pareto) -> None:
             zorder=3,
         )
         ax.annotate(
-            r["label"], (r["wall_s"], r["delta_rmse_rel"]), fontsize=7, xytext=(4, 3), textcoords="offset points"
+            r["label"],
+            (r["wall_s"], r["delta_rmse_rel"]),
+            fontsize=7,
+            xytext=(4, 3 - 9 * crowd),
+            textcoords="offset points",
         )
     front = sorted((rows[i]["wall_s"], rows[i]["delta_rmse_rel"]) for i in pareto)
     ax.plot(*zip(*front), "k--", lw=1, label="Pareto front")
