@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -134,6 +135,7 @@ def diffuser_transmission(
     diffuser_model: str = "zero-phase",
     beta_over_delta: float | None = None,
     refine_iter: int = 25,
+    upstream_m: float = 0.0,
     fft: FFT | None = None,
 ):
     """Diffuser transmission t_r (Methods, Diffuser transmission function).
@@ -144,18 +146,26 @@ def diffuser_transmission(
     0, square-rooted, given zero phase and back-propagated by -L2. With ``pad`` the frame is
     first extended by reflection to ``shape`` (the computational grid), so that light entering
     the frame from outside is modelled by plausible speckle, not by periodic wrap-around.
+    ``upstream_m`` > 0 (not in the paper): the diffuser sits that far upstream of the sample
+    (the scan records L1 = 0), so the sample is lit by the diffuser's field propagated over
+    ``upstream_m`` and the reference is the diffuser seen over ``upstream_m`` + L2. The single
+    material is fitted over that whole distance and t_r is its field at the sample plane. The
+    zero-phase estimate does not depend on it (back-propagating over L2 + d and forward over
+    d is back-propagating over L2).
     """
     if diffuser_model not in DIFFUSER_MODELS:
         raise ValueError(f"unknown diffuser_model {diffuser_model!r}: choose one of {', '.join(DIFFUSER_MODELS)}")
+    if not (math.isfinite(upstream_m) and upstream_m >= 0):
+        raise ValueError(f"diffuser_upstream_m must be >= 0, got {upstream_m}")
     if diffuser_model == "single-material":
         if beta_over_delta is None:
             raise ValueError("diffuser_model='single-material' needs beta_over_delta")
-        return single_material_diffuser(
+        t = single_material_diffuser(
             reference,
             beta_over_delta=beta_over_delta,
             pixel_size_m=pixel_size_m,
             wavelength=wavelength,
-            diffuser_detector_distance_m=diffuser_detector_distance_m,
+            diffuser_detector_distance_m=diffuser_detector_distance_m + upstream_m,
             coherence_length_x_m=coherence_length_x_m,
             coherence_length_y_m=coherence_length_y_m,
             pad=pad,
@@ -164,6 +174,8 @@ def diffuser_transmission(
             iterations=refine_iter,
             fft=fft,
         ).transmission
+        # the diffuser's field at the sample plane (0 m: the same array, nothing computed)
+        return optics.angular_spectrum_propagate(t, pixel_size_m, wavelength, upstream_m, fft)
     xp = get_array_module(reference)
     fft = fft or FFT.for_module(xp)
     ref, shape = _padded_reference(reference, pad, shape, xp)

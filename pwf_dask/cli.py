@@ -124,6 +124,7 @@ def _ingest(args) -> int:
         coherence_length_x_m=args.coherence_length_x_m,
         coherence_length_y_m=args.coherence_length_y_m,
         flat_dark_corrected=args.flat_dark_corrected,
+        diffuser_upstream_m=args.diffuser_upstream_m,
     )
     print(f"wrote scan {path}")
     return 0
@@ -146,6 +147,8 @@ def _retrieval_kwargs(args) -> dict:
         outlier_sigma=args.outlier_sigma,
         diffuser_drift=args.diffuser_drift,
         angle_chain=args.angle_chain,
+        # None: the scan's recorded diffuser_upstream_m (0 when it has none)
+        **({} if args.diffuser_upstream_m is None else {"diffuser_upstream_m": args.diffuser_upstream_m}),
     )
 
 
@@ -261,6 +264,13 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
         help="diffuser estimate from the reference: one material fitted (default) or the paper's zero phase",
     )
     p.add_argument(
+        "--diffuser-upstream-m",
+        type=float,
+        metavar="D",
+        help="pwf: the diffuser sits D metres upstream of the sample (the scan has L1 = 0); its fitted field "
+        "is propagated to the sample (default: the scan's diffuser_upstream_m attribute, else 0)",
+    )
+    p.add_argument(
         "--diffuser-material",
         default="silicon carbide",
         help="the diffuser's material, for its beta/delta (xraydb): silicon carbide, alumina, ...",
@@ -360,6 +370,12 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--pixel-size-m", type=float, required=True)
     i.add_argument("--sample-diffuser-distance-m", type=float, required=True, help="L1 (0: diffuser upstream)")
     i.add_argument("--diffuser-detector-distance-m", type=float, required=True, help="L2")
+    i.add_argument(
+        "--diffuser-upstream-m",
+        type=float,
+        default=0.0,
+        help="with L1 = 0: the diffuser this far upstream of the sample (recorded for PWF)",
+    )
     i.add_argument("--coherence-length-x-m", type=float, help="known coherence lengths (else calibrated)")
     i.add_argument("--coherence-length-y-m", type=float)
     i.add_argument("--flat-dark-corrected", action="store_true", help="the frames are already (I - dark)/(flat - dark)")

@@ -204,6 +204,7 @@ def ingest_scan(
     coherence_length_x_m: float | None = None,
     coherence_length_y_m: float | None = None,
     flat_dark_corrected: bool = False,
+    diffuser_upstream_m: float = 0.0,
     progress: bool = True,
 ) -> str:
     """Write a CONTRACT §1 scan store at ``out`` from TIFF/HDF5 frame sources; returns its path.
@@ -213,7 +214,8 @@ def ingest_scan(
     ``angles`` (a file or HDF5 spec) or ``angles_range_deg`` (start, stop; inclusive) give the
     rotation angles. Every frame is checked as it is written (finite, and non-negative after
     flat/dark correction), so a bad scan fails here with the frame named, and the partial
-    store is removed.
+    store is removed. ``diffuser_upstream_m`` > 0 records a diffuser that far upstream of the
+    sample (with ``sample_diffuser_distance_m`` = 0; not in CONTRACT §1, read by PWF).
     """
     out = Path(out)
     if out.exists():
@@ -223,10 +225,16 @@ def ingest_scan(
         ("pixel_size_m", pixel_size_m, True),
         ("sample_diffuser_distance_m", sample_diffuser_distance_m, False),
         ("diffuser_detector_distance_m", diffuser_detector_distance_m, True),
+        ("diffuser_upstream_m", diffuser_upstream_m, False),
     ):
         v = float(value)
         if not np.isfinite(v) or (v <= 0 if positive else v < 0):
             raise ScanError(f"{name} must be {'positive' if positive else '>= 0'}, got {value}")
+    if diffuser_upstream_m and sample_diffuser_distance_m:
+        raise ScanError(
+            "diffuser_upstream_m > 0 puts the diffuser before the sample, which needs "
+            f"sample_diffuser_distance_m = 0, got {sample_diffuser_distance_m}"
+        )
     proj_specs = [projections] if isinstance(projections, str) else list(projections)
     ref_specs = [reference] if isinstance(reference, str) else list(reference)
     sources: list[FrameSource] = []
@@ -276,6 +284,7 @@ def ingest_scan(
             "sample_diffuser_distance_m": float(sample_diffuser_distance_m),
             "diffuser_detector_distance_m": float(diffuser_detector_distance_m),
             "flat_dark_corrected": bool(flat_dark_corrected),
+            **({"diffuser_upstream_m": float(diffuser_upstream_m)} if diffuser_upstream_m else {}),
             "ingest_sources": {
                 "projections": proj_specs,
                 "reference": ref_specs,

@@ -138,6 +138,7 @@ def estimate_diffuser(
     diffuser_beta_over_delta: float | None = None,
     diffuser_refine_iter: int = 25,
     phase_screen_iter: int = 0,
+    diffuser_upstream_m: float = 0.0,
     fft_workers: int | None = None,
 ):
     """The diffuser t_r exactly as :func:`retrieve_projection` estimates it with the same
@@ -147,7 +148,11 @@ def estimate_diffuser(
     wavelength = optics.wavelength_m(energy_eV)
     if pad == "auto":
         pad = auto_pad(
-            pixel_size_m, wavelength, diffuser_detector_distance_m, coherence_length_x_m, coherence_length_y_m
+            pixel_size_m,
+            wavelength,
+            diffuser_detector_distance_m + diffuser_upstream_m,
+            coherence_length_x_m,
+            coherence_length_y_m,
         )
     kappa = _diffuser_kappa(diffuser_model, diffuser_material, diffuser_beta_over_delta, energy_eV)
     scale = float(xp.mean(ref))
@@ -166,6 +171,7 @@ def estimate_diffuser(
         diffuser_model=diffuser_model,
         beta_over_delta=kappa,
         refine_iter=diffuser_refine_iter,
+        upstream_m=diffuser_upstream_m,
         fft=FFT.for_module(xp, fft_workers),
     )
 
@@ -199,6 +205,19 @@ DRIFT_MIN_PX = 0.05
 #: widened by this many pixels: the speckle there also depends on its neighbours' t_r (L2's
 #: Fresnel spread, sqrt(lambda L2) = 2.4 px at the paper's set-up).
 DRIFT_MARGIN_PX = 2
+
+
+def check_diffuser_upstream(diffuser_upstream_m: float, sample_diffuser_distance_m: float) -> float:
+    """A diffuser upstream of the sample: >= 0 m, and only where the scan records L1 = 0."""
+    d = float(diffuser_upstream_m)
+    if not (math.isfinite(d) and d >= 0):
+        raise ValueError(f"diffuser_upstream_m must be >= 0, got {diffuser_upstream_m}")
+    if d > 0 and sample_diffuser_distance_m != 0:
+        raise ValueError(
+            "diffuser_upstream_m > 0 puts the diffuser before the sample, which needs "
+            f"sample_diffuser_distance_m = 0 (L1 = 0), got {sample_diffuser_distance_m}"
+        )
+    return d
 
 
 def drift_threshold_px(frame_shape: tuple[int, int]) -> float:
@@ -277,6 +296,7 @@ def retrieve_projection(
     diffuser_material: str = "silicon carbide",
     diffuser_beta_over_delta: float | None = None,
     diffuser_refine_iter: int = 25,
+    diffuser_upstream_m: float = 0.0,
     diffuser=None,
     background_mask=None,
     zero_background: bool = True,
@@ -311,6 +331,9 @@ def retrieve_projection(
     energy (xraydb) in ``diffuser_refine_iter`` L-BFGS iterations; ``"zero-phase"`` is the
     paper's estimate. ``diffuser`` passes a transmission computed before (e.g. once per diffuser
     position of a scan, by :func:`estimate_diffuser`); it must be on the computational grid.
+    ``diffuser_upstream_m`` (not in the paper; needs L1 = 0): the diffuser sits that far
+    upstream of the sample, and t_r is the fitted diffuser's field at the sample plane
+    (:func:`pwf_dask.calibration.diffuser_transmission`).
 
     ``field_upsample`` evaluates exp(psi), t and both propagations on a finer grid (psi stays
     on the detector grid; :func:`pwf_dask.solver.build_model`): ``"auto"`` goes on with 2 from
@@ -361,6 +384,7 @@ def retrieve_projection(
             "distances must satisfy sample_diffuser_distance_m >= 0 and diffuser_detector_distance_m > 0, "
             f"got {sample_diffuser_distance_m}, {diffuser_detector_distance_m}"
         )
+    check_diffuser_upstream(diffuser_upstream_m, sample_diffuser_distance_m)
     if isinstance(alpha, str):
         alpha = complex(alpha.replace(" ", ""))
     if isinstance(initial, str) and initial not in ("zero", "umpa"):
@@ -385,7 +409,11 @@ def retrieve_projection(
         coherence_length_y_m = cy if coherence_length_y_m is None else coherence_length_y_m
     if pad == "auto":
         pad = auto_pad(
-            pixel_size_m, wavelength, diffuser_detector_distance_m, coherence_length_x_m, coherence_length_y_m
+            pixel_size_m,
+            wavelength,
+            diffuser_detector_distance_m + diffuser_upstream_m,
+            coherence_length_x_m,
+            coherence_length_y_m,
         )
     if upsample == "auto":
         upsample = auto_upsample(pixel_size_m, coherence_length_x_m, coherence_length_y_m)
@@ -412,6 +440,7 @@ def retrieve_projection(
             diffuser_beta_over_delta=diffuser_beta_over_delta,
             diffuser_refine_iter=diffuser_refine_iter,
             phase_screen_iter=phase_screen_iter,
+            diffuser_upstream_m=diffuser_upstream_m,
             fft_workers=fft.workers,
         )
     else:
@@ -524,6 +553,7 @@ def retrieve_projection(
         "diffuser_given": diffuser is not None,
         "diffuser_beta_over_delta": kappa,
         "diffuser_refine_iter": diffuser_refine_iter,
+        "diffuser_upstream_m": float(diffuser_upstream_m),
         "restarts": restarts,
         "backtracks": backtracks,
         "stop_reason": sol.stop_reason,

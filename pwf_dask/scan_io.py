@@ -53,6 +53,8 @@ class ScanInfo:
     has_flat: bool
     has_dark: bool
     attrs: dict = field(default_factory=dict)
+    #: optional, not in CONTRACT §1: the diffuser this far upstream of the sample (L1 = 0)
+    diffuser_upstream_m: float = 0.0
 
 
 def _attr_float(attrs, name, path):
@@ -145,6 +147,14 @@ def open_scan(path: str | Path, check_values: bool = True):
         raise ScanError(
             f"{path}: diffuser_detector_distance_m must be positive, got {vals['diffuser_detector_distance_m']}"
         )
+    upstream = _attr_float(attrs, "diffuser_upstream_m", path) if "diffuser_upstream_m" in attrs else 0.0
+    if not upstream >= 0:
+        raise ScanError(f"{path}: diffuser_upstream_m must be >= 0, got {upstream}")
+    if upstream > 0 and vals["sample_diffuser_distance_m"] != 0:
+        raise ScanError(
+            f"{path}: diffuser_upstream_m = {upstream} (diffuser before the sample) needs "
+            f"sample_diffuser_distance_m = 0, got {vals['sample_diffuser_distance_m']}"
+        )
     coh = []
     for name in ("coherence_length_x_m", "coherence_length_y_m"):
         if name in attrs:
@@ -175,6 +185,7 @@ def open_scan(path: str | Path, check_values: bool = True):
         has_flat="flat" in ds,
         has_dark="dark" in ds,
         attrs=attrs,
+        diffuser_upstream_m=upstream,
     )
     if check_values:
         check_scan_values(ds, info)
@@ -239,6 +250,8 @@ RECON_KEYS = (
     "preconditioner",
     "outlier_sigma",
     "angle_chain",  # stores made before session 18 lack it and resume with any chain length
+    "diffuser_model",
+    "diffuser_upstream_m",  # session 19, as angle_chain
 )
 
 

@@ -23,7 +23,7 @@ from .backend import resolve_device, to_numpy
 from .cluster import Runner, worker_fft_threads
 from .detector import DEFAULT_OUTLIER_SIGMA, check_threshold, repair_outliers
 from .optics import wavelength_m
-from .retrieval import METHODS, check_diffuser_drift
+from .retrieval import METHODS, check_diffuser_drift, check_diffuser_upstream
 from .solver import DEFAULT_ALPHA, PAPER_TOL
 from .tracking import MIN_POSITIONS
 
@@ -62,6 +62,7 @@ _DIFFUSER_OPTIONS = (
     "diffuser_beta_over_delta",
     "diffuser_refine_iter",
     "phase_screen_iter",
+    "diffuser_upstream_m",
 )
 
 
@@ -237,6 +238,11 @@ def retrieve_scan(
     angle_chain = int(angle_chain) if method == "pwf" and "initial" not in options else 1
     alpha_c = complex(str(alpha).replace(" ", "")) if not isinstance(alpha, complex) else alpha
     ds, info = scan_io.open_scan(scan_path)
+    if method == "pwf":
+        # the scan's recorded geometry unless the caller gave the distance
+        options["diffuser_upstream_m"] = check_diffuser_upstream(
+            options.get("diffuser_upstream_m", info.diffuser_upstream_m), info.sample_diffuser_distance_m
+        )
     if info.n_positions < MIN_POSITIONS.get(method, 1):
         raise ValueError(
             f"method {method} needs K >= {MIN_POSITIONS[method]} diffuser positions; the scan has {info.n_positions}"

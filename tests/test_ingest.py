@@ -158,6 +158,7 @@ def _tiff_scan(tmp_path, ds, n_angles=None, low_frame=False):
         ("no_angles", "either a start and stop or a file"),
         ("no_source", "give --projections and --reference"),
         ("flat_at_dark", "not above the dark"),
+        ("upstream_with_l1", "needs sample_diffuser_distance_m = 0"),
     ],
 )
 def test_bad_input_is_refused_in_one_line_and_writes_nothing(source_scan, tmp_path, capsys, case, message):
@@ -180,6 +181,8 @@ def test_bad_input_is_refused_in_one_line_and_writes_nothing(source_scan, tmp_pa
     elif case == "flat_at_dark":
         tifffile.imwrite(tmp_path / "flat.tif", ds["dark"].values)
         src += ["--flat", str(tmp_path / "flat.tif")]
+    elif case == "upstream_with_l1":  # GEOMETRY_ARGS has L1 = 3 mm
+        src += ["--diffuser-upstream-m", "5e-3"]
     assert cli.main(["ingest", str(out), *src, *angles, *GEOMETRY_ARGS]) != 0
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.startswith("pwf-dask ingest: error:") and message in err, err

@@ -242,6 +242,29 @@ def test_bad_scans_exit_nonzero_with_one_line_and_write_nothing(tiny_scan, tmp_p
     assert not recon.exists()
 
 
+def test_a_recorded_upstream_distance_is_used_recorded_and_kept_on_resume(tiny_scan, tmp_path, capsys):
+    """The optional scan attribute ``diffuser_upstream_m`` reaches PWF and the store's
+    attributes; a resume with another distance is refused; on an L1 > 0 scan it is refused."""
+    import zarr
+
+    scan, recon = tmp_path / "up.zarr", tmp_path / "r.zarr"
+    argv = ["simulate", str(scan), "--shape", "32", "64", "--angles", "3", "--positions", "1"]
+    assert cli.main([*argv, "--diffuser-upstream-m", "5e-3"]) == 0
+    zarr.open_group(str(scan), mode="r+").attrs["diffuser_upstream_m"] = 5e-3
+    scan_io.consolidate(scan)
+    workflow.retrieve_scan(scan, recon, **FAST)
+    assert xr.open_zarr(recon).attrs["diffuser_upstream_m"] == 5e-3
+    capsys.readouterr()
+    assert (
+        cli.main(["retrieve", str(scan), str(recon), "--max-iter", "25", "--tol", "0", "--diffuser-upstream-m", "0"])
+        != 0
+    )
+    assert "other parameters (diffuser_upstream_m)" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert cli.main(["retrieve", str(tiny_scan), str(tmp_path / "no.zarr"), "--diffuser-upstream-m", "5e-3"]) != 0
+    assert "needs sample_diffuser_distance_m = 0" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert not (tmp_path / "no.zarr").exists()
+
+
 def test_simulate_with_the_diffuser_upstream_records_l1_zero(tmp_path):
     scan = tmp_path / "up.zarr"
     argv = ["simulate", str(scan), "--shape", "32", "64", "--angles", "2", "--positions", "1"]
