@@ -215,6 +215,25 @@ def test_a_known_upstream_distance_puts_the_diffuser_field_at_the_sample():
     assert np.sqrt(np.mean((wrong - ref) ** 2)) > 3 * noise
 
 
+@pytest.mark.gpu
+def test_upstream_diffuser_on_cupy(cupy):
+    setup = SpeckleSetup(shape=(64, 64), sample_diffuser_distance_m=0.0, diffuser_upstream_m=5e-3)
+    sim = simulate_projection(setup, seed=2)
+    geo = sim.geometry()
+    kw = dict(
+        energy_eV=geo["energy_eV"],
+        pixel_size_m=geo["pixel_size_m"],
+        diffuser_detector_distance_m=geo["diffuser_detector_distance_m"],
+        coherence_length_x_m=sim.coherence_length_x_m,
+        coherence_length_y_m=sim.coherence_length_y_m,
+        diffuser_upstream_m=5e-3,
+    )
+    cpu = estimate_diffuser(sim.reference, **kw)
+    gpu = estimate_diffuser(cupy.asarray(sim.reference), **kw)
+    assert isinstance(gpu, cupy.ndarray) and gpu.shape == cpu.shape
+    assert np.abs(cupy.asnumpy(gpu) - cpu).max() < 1e-3 * np.abs(cpu).mean()
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_diffuser_upstream_needs_its_distance(seed):
     """The independent checks' L1 = 0 geometry, 10 mm upstream (128^2): fitted at the sample
