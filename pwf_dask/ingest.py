@@ -225,16 +225,16 @@ def ingest_scan(
         ("pixel_size_m", pixel_size_m, True),
         ("sample_diffuser_distance_m", sample_diffuser_distance_m, False),
         ("diffuser_detector_distance_m", diffuser_detector_distance_m, True),
-        ("diffuser_upstream_m", diffuser_upstream_m, False),
     ):
         v = float(value)
         if not np.isfinite(v) or (v <= 0 if positive else v < 0):
             raise ScanError(f"{name} must be {'positive' if positive else '>= 0'}, got {value}")
-    if diffuser_upstream_m and sample_diffuser_distance_m:
-        raise ScanError(
-            "diffuser_upstream_m > 0 puts the diffuser before the sample, which needs "
-            f"sample_diffuser_distance_m = 0, got {sample_diffuser_distance_m}"
-        )
+    try:
+        from .retrieval import check_diffuser_upstream
+
+        check_diffuser_upstream(diffuser_upstream_m, float(sample_diffuser_distance_m))
+    except ValueError as exc:
+        raise ScanError(str(exc)) from None
     proj_specs = [projections] if isinstance(projections, str) else list(projections)
     ref_specs = [reference] if isinstance(reference, str) else list(reference)
     sources: list[FrameSource] = []

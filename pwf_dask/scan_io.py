@@ -148,13 +148,12 @@ def open_scan(path: str | Path, check_values: bool = True):
             f"{path}: diffuser_detector_distance_m must be positive, got {vals['diffuser_detector_distance_m']}"
         )
     upstream = _attr_float(attrs, "diffuser_upstream_m", path) if "diffuser_upstream_m" in attrs else 0.0
-    if not upstream >= 0:
-        raise ScanError(f"{path}: diffuser_upstream_m must be >= 0, got {upstream}")
-    if upstream > 0 and vals["sample_diffuser_distance_m"] != 0:
-        raise ScanError(
-            f"{path}: diffuser_upstream_m = {upstream} (diffuser before the sample) needs "
-            f"sample_diffuser_distance_m = 0, got {vals['sample_diffuser_distance_m']}"
-        )
+    try:
+        from .retrieval import check_diffuser_upstream
+
+        upstream = check_diffuser_upstream(upstream, vals["sample_diffuser_distance_m"])
+    except ValueError as exc:
+        raise ScanError(f"{path}: {exc}") from None
     coh = []
     for name in ("coherence_length_x_m", "coherence_length_y_m"):
         if name in attrs:

@@ -263,6 +263,11 @@ def test_a_recorded_upstream_distance_is_used_recorded_and_kept_on_resume(tiny_s
     assert cli.main(["retrieve", str(tiny_scan), str(tmp_path / "no.zarr"), "--diffuser-upstream-m", "5e-3"]) != 0
     assert "needs sample_diffuser_distance_m = 0" in capsys.readouterr().err.strip().splitlines()[-1]
     assert not (tmp_path / "no.zarr").exists()
+    zarr.open_group(str(scan), mode="r+").attrs["diffuser_upstream_m"] = -1e-3
+    scan_io.consolidate(scan)
+    assert cli.main(["retrieve", str(scan), str(tmp_path / "no.zarr")]) != 0
+    assert "diffuser_upstream_m must be >= 0" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert not (tmp_path / "no.zarr").exists()
 
 
 def test_simulate_with_the_diffuser_upstream_records_l1_zero(tmp_path):
