@@ -214,7 +214,7 @@ def _bench(args) -> int:
         "iteration": lambda: bench.run_iteration_benchmark(args.out, device=args.device, quick=args.quick),
         "accuracy": lambda: bench.run_accuracy_benchmark(args.out),
         "scan": lambda: bench.run_scan_benchmark(args.out),
-        "stability": lambda: stability.run_stability_benchmark(args.out, quick=args.quick),
+        "stability": lambda: stability.run_stability_benchmark(args.out, quick=args.quick, axes=args.axes),
     }
     if args.what not in runs:
         raise SystemExit(f"pwf-dask bench: unknown benchmark {args.what!r}")
@@ -254,8 +254,8 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
         "--field-upsample",
         default="auto",
         choices=["auto", "1", "2", "3"],
-        help="sample field and propagation on a finer grid: auto (when the phase gradient exceeds pi/2 per "
-        "pixel, thick samples), 1 (the paper's detector grid), 2, 3",
+        help="sample field and propagation on a finer grid: auto (pixels coarser than 0.209 coherence lengths, "
+        "or a phase gradient above pi/2 per pixel: thick samples), 1 (the paper's detector grid), 2, 3",
     )
     p.add_argument(
         "--diffuser-model",
@@ -421,6 +421,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--device", default="cpu", choices=["cpu", "gpu", "auto"])
     b.add_argument("--out", default="workflows/results")
     b.add_argument("--quick", action="store_true", help="one small size or scene (smoke test)")
+    b.add_argument(
+        "--axes",
+        nargs="+",
+        metavar="AXIS",
+        help="stability: re-measure only these axes, keep the others of the map in --out",
+    )
     b.set_defaults(func=_bench)
     return p
 

@@ -59,6 +59,7 @@ AXES: dict[str, list] = {
     "ablation": ["none", "no preconditioner", "gamma = 0", "alpha = 0"],
     "bead_radius_px": [4.0, 8.0, 16.0, 32.0],
     "dark_field_px": [0.0, 0.5, 1.0, 2.0],
+    "pixel_um": [0.65, 1.0, 1.3, 2.0],
 }
 PWF_ONLY_AXES = ("coherence_error", "ablation")
 
@@ -267,6 +268,9 @@ def _point_setups(axis: str, value, base: SpeckleSetup):
         pass  # the phantom changes (stability_map), not the set-up
     elif axis == "dark_field_px":
         dark = float(value)
+    elif axis == "pixel_um":
+        # the same sample and beam on a coarser detector: the frame (256 px) sees more of it
+        setup = replace(base, pixel_size_m=float(value) * 1e-6)
     else:
         raise ValueError(f"unknown stability axis {axis!r}: choose one of {', '.join(AXES)}")
     return setup, lateral, target, absorption, photons, pwf, dark
@@ -402,6 +406,7 @@ UNITS = {
     "ablation": "",
     "bead_radius_px": "px",
     "dark_field_px": "px of speckle blur behind the thickest part",
+    "pixel_um": "um detector pixel, coherence lengths 3.47 / 4.31 um",
 }
 
 
@@ -510,14 +515,53 @@ def stability_plot(path, rows: list[dict]) -> None:
     save_figure(fig, path)
 
 
-def run_stability_benchmark(out_dir: str | Path, quick: bool = False) -> list[dict]:
-    """``pwf-dask bench stability``: the full map (``quick``: a 96 x 96 frame, two values per axis)."""
+def read_stability_rows(path: str | Path) -> list[dict]:
+    """The rows of a written ``stability_map.csv``, with numbers, booleans and axis values
+    (numbers or labels) as :func:`stability_map` returned them."""
+    import csv
+
+    def parse(text: str):
+        if text in ("True", "False"):
+            return text == "True"
+        try:
+            return int(text)
+        except ValueError:
+            pass
+        try:
+            return float(text)
+        except ValueError:
+            return text
+
+    with open(path, newline="") as fh:
+        rows = [{k: parse(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+    for r in rows:
+        r["value"] = float(r["value"]) if isinstance(r["value"], int) else r["value"]
+        r["method"], r["axis"] = str(r["method"]), str(r["axis"])
+    return rows
+
+
+def run_stability_benchmark(out_dir: str | Path, quick: bool = False, axes: list[str] | None = None) -> list[dict]:
+    """``pwf-dask bench stability``: the full map (``quick``: a 96 x 96 frame, two values per axis).
+
+    ``axes``: re-measure only these axes and keep every other axis's rows of the map already
+    in ``out_dir`` (in :data:`AXES` order), e.g. after a change that only they show.
+    """
     from .bench import device_name
 
+    unknown = sorted(set(axes or ()) - set(AXES))
+    if unknown:
+        raise ValueError(f"unknown stability axis {unknown[0]!r}: choose from {', '.join(AXES)}")
+    chosen = {a: v for a, v in AXES.items() if axes is None or a in axes}
+    kept = Path(out_dir) / "stability_map.csv"
+    if axes is not None and not kept.exists():
+        raise ValueError(f"--axes re-measures part of a map, but {kept} does not exist: run the full map")
     if quick:
-        axes = {a: [v[0], v[-1]] for a, v in AXES.items()}
-        rows = stability_map(shape=(96, 96), axes=axes)
+        rows = stability_map(shape=(96, 96), axes={a: [v[0], v[-1]] for a, v in chosen.items()})
     else:
-        rows = stability_map()
+        rows = stability_map(axes=chosen)
+    if axes is not None:
+        old = [r for r in read_stability_rows(kept) if r["axis"] not in chosen]
+        order = list(AXES)
+        rows = sorted(old + rows, key=lambda r: order.index(r["axis"]) if r["axis"] in order else len(order))
     write_stability_map(rows, out_dir, device_name(np))
     return rows

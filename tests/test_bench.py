@@ -25,6 +25,13 @@ def test_bench_unknown_name_is_refused():
         cli.main(["bench", "nonsense"])
 
 
+def test_bench_stability_axes_unknown_or_without_a_map_exit_with_one_line(tmp_path, capsys):
+    assert cli.main(["bench", "stability", "--axes", "wind", "--out", str(tmp_path)]) == 2
+    assert cli.main(["bench", "stability", "--axes", "dose", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "unknown stability axis 'wind'" in err[0] and "does not exist" in err[1]
+
+
 @pytest.mark.gpu
 def test_bench_iteration_on_cupy_names_the_device(cupy, tmp_path):
     """The GPU branch of the benchmark (device name, stream sync, its own file)."""

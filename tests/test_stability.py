@@ -64,6 +64,30 @@ def test_two_dose_map_end_to_end(tmp_path):
     assert (tmp_path / "stability_map.png").stat().st_size > 1000
 
 
+def test_a_written_map_reads_back_as_it_was_written(tmp_path):
+    """``bench stability --axes`` keeps the other axes' rows of the committed map: read back,
+    they write the same table (numbers, labels, booleans, NaN)."""
+    from pathlib import Path
+
+    committed = Path(__file__).parents[1] / "workflows" / "results"
+    rows = stability.read_stability_rows(committed / "stability_map.csv")
+    assert {"dose", "geometry", "ablation", "pixel_um"} <= {r["axis"] for r in rows}
+    assert any(isinstance(r["value"], str) for r in rows) and all(isinstance(r["holds"], bool) for r in rows)
+    md = (committed / "stability_map.md").read_text()
+    device = md.splitlines()[0].split("(", 1)[1].rsplit(")", 1)[0]
+    stability.write_stability_map(rows, tmp_path, device)
+    assert (tmp_path / "stability_map.md").read_text() == md
+    assert (tmp_path / "stability_map.csv").read_text() == (committed / "stability_map.csv").read_text()
+
+
+def test_re_measuring_axes_needs_a_map_and_known_axes(tmp_path):
+    with pytest.raises(ValueError, match="unknown stability axis 'wind'"):
+        stability.run_stability_benchmark(tmp_path, axes=["wind"])
+    with pytest.raises(ValueError, match="does not exist"):
+        stability.run_stability_benchmark(tmp_path, axes=["dose"])
+    assert not list(tmp_path.iterdir())  # nothing written
+
+
 def test_bead_contrast_error_is_local_and_signed():
     """Zero for the truth plus any offset; a bead 1.2x deeper raises the local contrast (which
     includes the cylinder's own curvature) by 0.2 of the bead's share of it."""
