@@ -124,7 +124,8 @@ def test_thick_scene_without_wrapping():
     rod = Phantom(cylinder_radius_m=210e-6, cylinder_material="soda-lime glass")
     sim = simulate_projection(setup, phantom=rod, seed=2)
     assert sim.phase.min() < -30 * np.pi
-    res = retrieve_projection(sim.sample, sim.reference, **kwargs(sim))
+    # 800 iterations: the phase has not moved after 2000 either (gain 0.04 on the 3x field grid)
+    res = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=800))
     g = gain(res.phase, sim.phase, sim.phase < -1.0)
     assert 0.85 <= g <= 1.15, g
 
