@@ -2,7 +2,7 @@
 # Reproduce the committed results in workflows/results/ (run from the repository root after
 # the README's install command). Each line is one benchmark; run any of them alone.
 #   speed_accuracy.*   ~10 min on 2 cores: PWF, LCS K=3/6/12, UMPA, GF, MIST K=4/12 on the demo scan
-#   stability_map.*    ~15 min: where each method fails (one projection, 256 x 256)
+#   stability_map.*    ~17 min: where each method fails (one projection, 256 x 256)
 #   bench_iteration_*  ~2 min: PWF iteration time / FFT time (add --device gpu on a GPU)
 #   bench_scan_cpu.*   ~3 min: projections/s/worker on a LocalCluster, full-scan model
 #   bead_contrast.*    ~1 min: the largest bead's phase/attenuation contrast against alpha
@@ -10,6 +10,7 @@
 #   authors_release.*  ~10 min: pwf-dask against the authors' released choices, 4 scenes
 #   drift_baselines.*  ~1 min: UMPA and LCS with a drifting diffuser, correction off and on
 #   calibration_dose.* ~5 min: coherence-length calibration and PWF against dose, true vs calibrated
+#   geometry_sweep.*   ~2 min: PWF on other energies, pixels, coherence lengths and distances
 set -euo pipefail
 PWF=${PWF:-.venv/bin/pwf-dask}
 OUT=${OUT:-workflows/results}
@@ -23,7 +24,8 @@ case "${1:-all}" in
   authors) "$(dirname "$PWF")/python" workflows/authors_release.py --out "$OUT" ;;
   drift) "$(dirname "$PWF")/python" workflows/drift_baselines.py --out "$OUT" ;;
   calibration) "$(dirname "$PWF")/python" workflows/calibration_dose.py --out "$OUT" ;;
+  geometry) "$(dirname "$PWF")/python" workflows/geometry_sweep.py --out "$OUT" ;;
   all)
-    for b in accuracy stability iteration scan bead defects authors drift calibration; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|stability|iteration|scan|bead|defects|authors|drift|calibration|all]" >&2; exit 2 ;;
+    for b in accuracy stability iteration scan bead defects authors drift calibration geometry; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|stability|iteration|scan|bead|defects|authors|drift|calibration|geometry|all]" >&2; exit 2 ;;
 esac
