@@ -307,11 +307,18 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .simulation import DEFAULT_PRESET, PRESETS
+
     p = argparse.ArgumentParser(prog="pwf-dask", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
     s = sub.add_parser("simulate", help="simulate a scan of a 3-D phantom into a Zarr store")
     s.add_argument("out")
-    s.add_argument("--preset", default="demo", help="demo (seconds), small (minutes), paper (801 x 2160 x 2560)")
+    s.add_argument(
+        "--preset",
+        default=DEFAULT_PRESET,
+        help=f"one of {', '.join(PRESETS)}: beads (the default: paper-sized glass beads, 160 x 320 px, "
+        "minutes), demo (seconds), small (the demo's phantom, 64 x 192), paper (801 x 2160 x 2560)",
+    )
     s.add_argument("--shape", type=int, nargs=2, metavar=("NY", "NX"))
     s.add_argument("--angles", type=int)
     s.add_argument("--positions", type=int)

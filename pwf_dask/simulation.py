@@ -100,6 +100,8 @@ def default_phantom(
     # a frame of few rows (a slab of a wide detector) holds smaller beads: each must fit
     # its height with the 1.2 r margin the placement keeps
     hi = min(hi, 0.5 * height_m / 1.25)
+    # and inside the cylinder, with the 1.05 r margin the placement keeps
+    hi = min(hi, big_r / 1.1)
     lo = min(lo, hi)
     spheres: list[Sphere] = []
     radii = np.sort(rng.uniform(lo, hi, n_beads))[::-1]
@@ -506,11 +508,24 @@ def refractive_index_volume(phantom: Phantom, y_m, v_m, u_m, energy_eV: float, s
 SCAN_CYLINDER_WIDTH_FRACTION = 0.8 * 0.72
 
 
+#: radii of the paper's glass beads (Merck G8893, <= 106 um across; Methods, Samples): the
+#: ``beads`` and ``paper`` presets draw their beads from this range, not from the frame's size
+PAPER_BEAD_RADIUS_M = (25e-6, 53e-6)
+
+
 def scan_phantom(
-    shape: tuple[int, int], pixel_size_m: float, seed: int = 0, cylinder_width_fraction: float | None = None
+    shape: tuple[int, int],
+    pixel_size_m: float,
+    seed: int = 0,
+    cylinder_width_fraction: float | None = None,
+    bead_radius_range_m: tuple[float, float] | None = None,
 ) -> Phantom:
     """The phantom :func:`simulate_scan` draws for a frame of ``shape`` and its ``seed``: the
     cylinder spans :data:`SCAN_CYLINDER_WIDTH_FRACTION` of the width, one bead per 12 rows (>= 3).
+
+    Bead radii are 5-12 % of the field of view unless ``bead_radius_range_m`` gives them in
+    metres (e.g. :data:`PAPER_BEAD_RADIUS_M`); either way a bead fits the frame height and the
+    cylinder, so a small frame holds smaller beads than asked for.
 
     ``cylinder_width_fraction`` widens (or narrows) the cylinder alone; the beads stay where
     the default draws them, inside the field of view. Above 1 the sample is wider than the
@@ -522,6 +537,7 @@ def scan_phantom(
         np.random.default_rng(seed + 1000),
         height_m=ny * pixel_size_m,
         n_beads=max(3, ny // 12),
+        bead_radius_range_m=bead_radius_range_m,
     )
     if cylinder_width_fraction is None:
         return phantom
@@ -535,19 +551,28 @@ def scan_phantom(
 
 
 PRESETS: dict[str, dict] = {
-    # seconds on a laptop: what `pwf-dask demo` reconstructs
+    # a slab of the paper's scan (the default): glass beads of the paper's size (one of 83 um
+    # across fills the 160 rows) at its 0.65 um pixel, so a bead's radius is ~12 coherence
+    # lengths as in the paper; a few minutes on a laptop
+    "beads": dict(shape=(160, 320), angles=121, positions=2, photons=1e4, bead_radius_m=PAPER_BEAD_RADIUS_M),
+    # seconds on a laptop: what `pwf-dask demo` reconstructs. The phantom is the paper's
+    # shrunk to 128 px: its beads are 12 px (2 coherence lengths) in radius, smaller than
+    # the paper's, and PWF with the paper's alpha overshoots them (README, Where PWF fails)
     "demo": dict(shape=(48, 128), angles=61, positions=2, photons=1e4),
-    # a few minutes: enough angles and pixels for quantitative beads
+    # the demo's phantom on a larger frame: beads up to 25 px in radius
     "small": dict(shape=(64, 192), angles=121, positions=2, photons=1e4),
     # the paper's scan: 801 angles over 0-180 degrees of 2160 x 2560 pixels (~18 GB)
-    "paper": dict(shape=(2160, 2560), angles=801, positions=1, photons=1e4),
+    "paper": dict(shape=(2160, 2560), angles=801, positions=1, photons=1e4, bead_radius_m=PAPER_BEAD_RADIUS_M),
 }
+
+#: what ``pwf-dask simulate`` (and :func:`simulate_scan`) draws when no preset is named
+DEFAULT_PRESET = "beads"
 
 
 def simulate_scan(
     path,
     *,
-    preset: str = "demo",
+    preset: str = DEFAULT_PRESET,
     shape: tuple[int, int] | None = None,
     angles: int | None = None,
     positions: int | None = None,
@@ -608,7 +633,7 @@ def simulate_scan(
         setup = replace(setup, sample_diffuser_distance_m=0.0, diffuser_upstream_m=diffuser_upstream_m)
     p = setup.pixel_size_m
     setup.rotation_axis_offset_m = rotation_axis_offset_px * p
-    phantom = scan_phantom(shape, p, seed, cylinder_width_fraction)
+    phantom = scan_phantom(shape, p, seed, cylinder_width_fraction, cfg.get("bead_radius_m"))
     angles_deg = np.linspace(0.0, 180.0, n_ang)
     attrs = {
         "energy_eV": setup.energy_eV,

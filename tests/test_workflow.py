@@ -11,7 +11,14 @@ import zarr
 
 from pwf_dask import cli, scan_io, workflow
 from pwf_dask.materials import delta_beta
-from pwf_dask.simulation import phantom_from_json, refractive_index_volume, simulate_scan
+from pwf_dask.simulation import (
+    PAPER_BEAD_RADIUS_M,
+    PRESETS,
+    phantom_from_json,
+    refractive_index_volume,
+    scan_phantom,
+    simulate_scan,
+)
 
 FAST = dict(max_iter=25, tol=0.0)
 
@@ -181,7 +188,7 @@ def test_simulated_zingers_are_left_out_where_isolated(tmp_path):
     from scipy import ndimage
 
     clean, scan, recon = tmp_path / "c.zarr", tmp_path / "z.zarr", tmp_path / "r.zarr"
-    argv = ["--shape", "32", "64", "--angles", "3", "--positions", "1"]
+    argv = ["--preset", "demo", "--shape", "32", "64", "--angles", "3", "--positions", "1"]
     assert cli.main(["simulate", str(clean), *argv]) == 0
     assert cli.main(["simulate", str(scan), *argv, "--zingers", str(10 / (32 * 64))]) == 0
     hit = zarr.open_group(str(scan))["projections"][0] != zarr.open_group(str(clean))["projections"][0]
@@ -248,7 +255,7 @@ def test_a_recorded_upstream_distance_is_used_recorded_and_kept_on_resume(tiny_s
     import zarr
 
     scan, recon = tmp_path / "up.zarr", tmp_path / "r.zarr"
-    argv = ["simulate", str(scan), "--shape", "32", "64", "--angles", "3", "--positions", "1"]
+    argv = ["simulate", str(scan), "--preset", "demo", "--shape", "32", "64", "--angles", "3", "--positions", "1"]
     assert cli.main([*argv, "--diffuser-upstream-m", "5e-3"]) == 0
     zarr.open_group(str(scan), mode="r+").attrs["diffuser_upstream_m"] = 5e-3
     scan_io.consolidate(scan)
@@ -272,7 +279,7 @@ def test_a_recorded_upstream_distance_is_used_recorded_and_kept_on_resume(tiny_s
 
 def test_simulate_with_the_diffuser_upstream_records_l1_zero(tmp_path):
     scan = tmp_path / "up.zarr"
-    argv = ["simulate", str(scan), "--shape", "32", "64", "--angles", "2", "--positions", "1"]
+    argv = ["simulate", str(scan), "--preset", "demo", "--shape", "32", "64", "--angles", "2", "--positions", "1"]
     assert cli.main([*argv, "--diffuser-upstream-m", "5e-3"]) == 0
     ds = xr.open_zarr(scan)
     assert ds.attrs["sample_diffuser_distance_m"] == 0.0
@@ -285,7 +292,7 @@ def test_simulate_a_slab_of_few_rows(tmp_path, shape):
     """A wide frame of few rows (a slab of a detector) holds beads that fit its height (the
     placement failed with 'high - low < 0' before)."""
     scan = tmp_path / "slab.zarr"
-    argv = ["simulate", str(scan), "--shape", *map(str, shape), "--angles", "2", "--positions", "1"]
+    argv = ["simulate", str(scan), "--preset", "demo", "--shape", *map(str, shape), "--angles", "2", "--positions", "1"]
     assert cli.main(argv) == 0
     ph = phantom_from_json(xr.open_zarr(scan).attrs["simulation_phantom"])
     height = shape[0] * xr.open_zarr(scan).attrs["pixel_size_m"]
@@ -345,13 +352,57 @@ def test_cylinder_delta_within_5_percent(demo_recon):
     assert float(np.median(demo_recon.delta[0].values[:, core])) == pytest.approx(dc, rel=0.05)
 
 
+def test_default_preset_holds_beads_of_the_papers_size():
+    """``beads`` (the default) and ``paper`` draw the paper's <= 106 um beads, not beads scaled
+    to the frame; a smaller frame shrinks them to fit its height and the cylinder."""
+    p = 0.65e-6
+    assert cli.build_parser().parse_args(["simulate", "x.zarr"]).preset == "beads"
+    assert PRESETS["beads"]["bead_radius_m"] == PRESETS["paper"]["bead_radius_m"] == PAPER_BEAD_RADIUS_M
+    lo, hi = PAPER_BEAD_RADIUS_M
+    paper = scan_phantom(PRESETS["paper"]["shape"], p, 0, None, PAPER_BEAD_RADIUS_M)
+    radii = np.array([sp.radius_m for sp in paper.spheres])
+    assert len(radii) > 50 and radii.min() >= lo and radii.max() == hi
+    slab = scan_phantom(PRESETS["beads"]["shape"], p, 0, None, PAPER_BEAD_RADIUS_M)
+    assert max(sp.radius_m for sp in slab.spheres) == pytest.approx(0.4 * 160 * p)  # 83 um across
+    for shape in ((32, 64), (48, 40)):
+        small = scan_phantom(shape, p, 1, None, PAPER_BEAD_RADIUS_M)
+        for sp in small.spheres:
+            assert abs(sp.y_m) + sp.radius_m <= 0.5 * shape[0] * p
+            assert np.hypot(sp.u_m, sp.v_m) + sp.radius_m <= small.cylinder_radius_m
+
+
+@pytest.fixture(scope="module")
+def beads_recon(tmp_path_factory):
+    """The default simulated scan (preset ``beads``: the paper's toothpick slab with a glass
+    bead of the paper's size, 83 um across, radius ~12 coherence lengths), one position and
+    61 of its 121 angles to save time, reconstructed with the defaults (the paper's alpha)."""
+    d = tmp_path_factory.mktemp("beads")
+    scan, recon = d / "scan.zarr", d / "recon.zarr"
+    simulate_scan(scan, angles=61, positions=1, seed=0, rotation_axis_offset_px=2.5, progress=False)
+    workflow.run_scan(scan, recon)
+    return xr.open_zarr(recon)
+
+
+def test_glass_bead_delta_within_5_percent(beads_recon):
+    assert beads_recon.attrs["simulation_preset"] == "beads" and beads_recon.attrs["alpha"] == "0.1+0.01j"
+    dg, _ = delta_beta("soda-lime glass", beads_recon.attrs["energy_eV"])
+    d, _ = bead_values(beads_recon, 0)
+    assert d == pytest.approx(dg, rel=0.05)
+
+
+def test_glass_bead_beta_within_20_percent(beads_recon):
+    _, bg = delta_beta("soda-lime glass", beads_recon.attrs["energy_eV"])
+    _, b = bead_values(beads_recon, 0)
+    assert b == pytest.approx(bg, rel=0.2)
+
+
 @pytest.mark.xfail(
     strict=True,
-    reason="known: bead delta +19 % / +14 % (positions 0/1) with the paper's alpha "
-    "and the single-material diffuser: Re(alpha) damps the 12-px bead's attenuation and the phase "
-    "compensates; +1.2 % / -8.6 % with alpha = 0.1+0.05j (README, Scan-level findings)",
+    reason="known: the demo's beads are 12 px (2 coherence lengths) in radius; bead delta +19 % / +14 % "
+    "(positions 0/1) with the paper's alpha: Re(alpha) damps the small bead's attenuation and the phase "
+    "compensates; +1.2 % / -8.6 % with alpha = 0.1+0.05j (README, Where PWF fails)",
 )
-def test_glass_bead_delta_within_5_percent(demo_recon):
+def test_demo_small_bead_delta_within_5_percent(demo_recon):
     dg, _ = delta_beta("soda-lime glass", demo_recon.attrs["energy_eV"])
     d, _ = bead_values(demo_recon, 0)
     assert d == pytest.approx(dg, rel=0.05)
@@ -359,10 +410,10 @@ def test_glass_bead_delta_within_5_percent(demo_recon):
 
 @pytest.mark.xfail(
     strict=True,
-    reason="known: bead beta 0.72 / 0.82 of xraydb with the paper's alpha (Re(alpha) damps small absorbers); "
-    "+2 % / +14 % with alpha = 0.1+0.05j (README, Scan-level findings)",
+    reason="known: the demo's small bead's beta is 0.72 / 0.82 of xraydb with the paper's alpha (Re(alpha) "
+    "damps small absorbers); +2 % / +14 % with alpha = 0.1+0.05j (README, Where PWF fails)",
 )
-def test_glass_bead_beta_within_20_percent(demo_recon):
+def test_demo_small_bead_beta_within_20_percent(demo_recon):
     _, bg = delta_beta("soda-lime glass", demo_recon.attrs["energy_eV"])
     _, b = bead_values(demo_recon, 0)
     assert b == pytest.approx(bg, rel=0.2)
@@ -375,14 +426,24 @@ def test_fsc_resolutions_are_physical(demo_recon):
         assert 2 * p <= r < 30 * p, (name, r)
 
 
-@pytest.fixture(scope="module")
-def lcs12_recon(tmp_path_factory):
-    """The same phantom and (position 0) diffuser as the demo scan, K = 12 positions, LCS."""
-    d = tmp_path_factory.mktemp("lcs12")
+def lcs12(tmp_path_factory, name, **scene):
+    """The scene's phantom with K = 12 diffuser positions (position 0 is the PWF scan's
+    diffuser), reconstructed by LCS from all twelve."""
+    d = tmp_path_factory.mktemp(name)
     scan, recon = d / "scan.zarr", d / "recon.zarr"
-    simulate_scan(scan, preset="demo", positions=12, seed=0, rotation_axis_offset_px=2.5, progress=False)
+    simulate_scan(scan, positions=12, seed=0, rotation_axis_offset_px=2.5, progress=False, **scene)
     workflow.run_scan(scan, recon, method="lcs")
     return xr.open_zarr(recon)
+
+
+@pytest.fixture(scope="module")
+def lcs12_recon(tmp_path_factory):
+    return lcs12(tmp_path_factory, "lcs12", preset="demo")
+
+
+@pytest.fixture(scope="module")
+def lcs12_beads_recon(tmp_path_factory):
+    return lcs12(tmp_path_factory, "lcs12beads", angles=61)
 
 
 def bead_errors(ds, p):
@@ -391,18 +452,27 @@ def bead_errors(ds, p):
     return abs(d / dg - 1), abs(b / bg - 1)
 
 
-def test_pwf_k1_beats_lcs_k12_on_bead_beta(demo_recon, lcs12_recon):
-    """The paper's beta finding: LCS's attenuation carries phase-coupling artifacts."""
+def test_pwf_k1_beats_lcs_k12_on_bead_delta(beads_recon, lcs12_beads_recon):
+    """The paper's headline on the default scan (a bead of the paper's size), from measured errors."""
+    assert lcs12_beads_recon.sizes["position"] == 1 and lcs12_beads_recon.attrs["method"] == "lcs"
+    assert lcs12_beads_recon.attrs["simulation_phantom"] == beads_recon.attrs["simulation_phantom"]
+    assert bead_errors(beads_recon, 0)[0] < bead_errors(lcs12_beads_recon, 0)[0]
+
+
+def test_pwf_k1_beats_lcs_k12_on_bead_beta(beads_recon, lcs12_beads_recon, demo_recon, lcs12_recon):
+    """The paper's beta finding: LCS's attenuation carries phase-coupling artifacts, on the
+    paper's bead and on the demo's small one."""
     assert lcs12_recon.sizes["position"] == 1 and lcs12_recon.attrs["method"] == "lcs"
+    assert bead_errors(beads_recon, 0)[1] < bead_errors(lcs12_beads_recon, 0)[1]
     assert bead_errors(demo_recon, 0)[1] < bead_errors(lcs12_recon, 0)[1]
 
 
 @pytest.mark.xfail(
     strict=True,
-    reason="measured, not the paper's headline: on the demo scene LCS K=12 bead delta "
+    reason="measured, where the paper's headline reverses: on the demo's 12-px beads LCS K=12 bead delta "
     "is +3.9 %, PWF K=1 +19 % with the paper's alpha (-3 % with alpha = 0.1+0.05j; README)",
 )
-def test_pwf_k1_beats_lcs_k12_on_bead_delta(demo_recon, lcs12_recon):
+def test_demo_small_bead_pwf_k1_beats_lcs_k12_on_bead_delta(demo_recon, lcs12_recon):
     assert bead_errors(demo_recon, 0)[0] < bead_errors(lcs12_recon, 0)[0]
 
 
@@ -410,7 +480,7 @@ def test_a_drifting_diffuser_is_measured_per_projection(tmp_path, capsys):
     """``simulate --diffuser-drift-px``: the diffuser creeps linearly over the scan; every
     projection's drift is recorded (PWF moves its t_r by it), and a bad value is refused."""
     scan, recon = tmp_path / "drift.zarr", tmp_path / "r.zarr"
-    args = ["simulate", str(scan), "--shape", "64", "96", "--angles", "5", "--positions", "1"]
+    args = ["simulate", str(scan), "--preset", "demo", "--shape", "64", "96", "--angles", "5", "--positions", "1"]
     assert cli.main([*args, "--seed", "3", "--diffuser-drift-px", "0.4", "-1.2"]) == 0
     assert cli.main(["retrieve", str(scan), str(tmp_path / "never.zarr"), "--diffuser-drift", "sideways"]) != 0
     assert "diffuser_drift must be" in capsys.readouterr().err
@@ -431,7 +501,8 @@ def interior_recon(tmp_path_factory):
     scan, recon = d / "scan.zarr", d / "recon.zarr"
     assert (
         cli.main(
-            ["simulate", str(scan), "--positions", "1", "--axis-offset-px", "2.5", "--cylinder-width-fraction", "1.5"]
+            ["simulate", str(scan), "--preset", "demo", "--positions", "1", "--axis-offset-px", "2.5"]
+            + ["--cylinder-width-fraction", "1.5"]
         )
         == 0
     )
@@ -470,7 +541,8 @@ def test_interior_scan_keeps_the_level_of_delta(interior_recon):
 def test_simulated_dark_field_blurs_the_speckle_behind_the_sample_only(tmp_path):
     """``simulate --dark-field-px``: behind the sample the speckle loses contrast, beside it
     it keeps it, and the reference is untouched (noise-free: test_stability)."""
-    args = ["--shape", "48", "96", "--angles", "2", "--positions", "1", "--corrected", "--seed", "4"]
+    args = ["--preset", "demo", "--shape", "48", "96", "--angles", "2", "--positions", "1", "--corrected"]
+    args += ["--seed", "4"]
     assert cli.main(["simulate", str(tmp_path / "a.zarr"), *args]) == 0
     assert cli.main(["simulate", str(tmp_path / "b.zarr"), *args, "--dark-field-px", "2"]) == 0
     a, b = xr.open_zarr(tmp_path / "a.zarr"), xr.open_zarr(tmp_path / "b.zarr")
