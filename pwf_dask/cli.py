@@ -212,7 +212,7 @@ def _bench(args) -> int:
 
     runs = {
         "iteration": lambda: bench.run_iteration_benchmark(args.out, device=args.device, quick=args.quick),
-        "accuracy": lambda: bench.run_accuracy_benchmark(args.out),
+        "accuracy": lambda: bench.run_accuracy_benchmark(args.out, preset=args.preset),
         "scan": lambda: bench.run_scan_benchmark(args.out),
         "stability": lambda: stability.run_stability_benchmark(args.out, quick=args.quick, axes=args.axes),
     }
@@ -428,6 +428,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--device", default="cpu", choices=["cpu", "gpu", "auto"])
     b.add_argument("--out", default="workflows/results")
     b.add_argument("--quick", action="store_true", help="one small size or scene (smoke test)")
+    b.add_argument(
+        "--preset",
+        default="demo",
+        help="accuracy: the scene, demo (speed_accuracy.*) or beads (the default scan's paper-sized bead; "
+        "speed_accuracy_beads.*)",
+    )
     b.add_argument(
         "--axes",
         nargs="+",

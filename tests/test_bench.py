@@ -40,3 +40,23 @@ def test_bench_iteration_on_cupy_names_the_device(cupy, tmp_path):
     assert len(rows) == 2 and all(float(r["ratio"]) > 0 for r in rows)
     assert rows[0]["device"] == cupy.cuda.runtime.getDeviceProperties(0)["name"].decode()
     assert (tmp_path / "bench_iteration_gpu.md").exists()
+
+
+def test_bench_accuracy_writes_one_row_per_run_with_errors_against_the_truth(tmp_path, capsys):
+    """One cheap run (GF on the demo scene) through the whole accuracy bench; a preset without
+    a scene exits with one line and writes nothing."""
+    from pwf_dask import bench
+
+    rows = bench.run_accuracy_benchmark(tmp_path / "out", tmp_path / "work", runs=[("GF K=1", "gf", 1, {})])
+    assert [r["label"] for r in rows] == ["GF K=1"]
+    # GF has no attenuation (its beta is zero): the bead's beta error is -1 exactly
+    assert rows[0]["bead_beta_err"] == pytest.approx(-1.0)
+    assert rows[0]["wall_s"] >= rows[0]["retrieval_s"] > 0 and rows[0]["fsc_truth_delta_um"] > 0
+    table = (tmp_path / "out" / "speed_accuracy.md").read_text()
+    assert "--preset demo" in table and "| GF K=1* | 1 |" in table
+    assert (tmp_path / "out" / "speed_accuracy.png").stat().st_size > 1000
+    capsys.readouterr()
+    assert cli.main(["bench", "accuracy", "--preset", "paper", "--out", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "no scene for preset 'paper'" in err
+    assert not (tmp_path / "none").exists()

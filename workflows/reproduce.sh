@@ -2,6 +2,7 @@
 # Reproduce the committed results in workflows/results/ (run from the repository root after
 # the README's install command). Each line is one benchmark; run any of them alone.
 #   speed_accuracy.*   ~10 min on 2 cores: PWF, LCS K=3/6/12, UMPA, GF, MIST K=4/12 on the demo scan
+#   speed_accuracy_beads.* ~15 min: the same comparison (9 runs) on the default scan's paper-sized bead
 #   stability_map.*    ~17 min: where each method fails (one projection, 256 x 256)
 #   bench_iteration_*  ~2 min: PWF iteration time / FFT time (add --device gpu on a GPU)
 #   bench_scan_cpu.*   ~3 min: projections/s/worker on a LocalCluster, full-scan model
@@ -16,6 +17,7 @@ PWF=${PWF:-.venv/bin/pwf-dask}
 OUT=${OUT:-workflows/results}
 case "${1:-all}" in
   accuracy) "$PWF" bench accuracy --out "$OUT" ;;
+  accuracy-beads) "$PWF" bench accuracy --preset beads --out "$OUT" ;;
   stability) "$PWF" bench stability --out "$OUT" ;;
   iteration) "$PWF" bench iteration --out "$OUT" ;;
   scan) "$PWF" bench scan --out "$OUT" ;;
@@ -26,6 +28,6 @@ case "${1:-all}" in
   calibration) "$(dirname "$PWF")/python" workflows/calibration_dose.py --out "$OUT" ;;
   geometry) "$(dirname "$PWF")/python" workflows/geometry_sweep.py --out "$OUT" ;;
   all)
-    for b in accuracy stability iteration scan bead defects authors drift calibration geometry; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|stability|iteration|scan|bead|defects|authors|drift|calibration|geometry|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration geometry; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|geometry|all]" >&2; exit 2 ;;
 esac
