@@ -559,7 +559,7 @@ PRESETS: dict[str, dict] = {
     # shrunk to 128 px: its beads are 12 px (2 coherence lengths) in radius, smaller than
     # the paper's, and PWF with the paper's alpha overshoots them (README, Where PWF fails)
     "demo": dict(shape=(48, 128), angles=61, positions=2, photons=1e4),
-    # the demo's phantom on a larger frame: beads up to 25 px in radius
+    # the demo's phantom on a larger frame: beads up to 18 px in radius
     "small": dict(shape=(64, 192), angles=121, positions=2, photons=1e4),
     # the paper's scan: 801 angles over 0-180 degrees of 2160 x 2560 pixels (~18 GB)
     "paper": dict(shape=(2160, 2560), angles=801, positions=1, photons=1e4, bead_radius_m=PAPER_BEAD_RADIUS_M),
