@@ -94,6 +94,9 @@ def _simulate(args) -> int:
         diffuser_drift_px=tuple(args.diffuser_drift_px),
         cylinder_width_fraction=args.cylinder_width_fraction,
         dark_field_px=args.dark_field_px,
+        diffuser_grit=args.grit,
+        diffuser_radius_median_m=None if args.grain_radius_um is None else args.grain_radius_um * 1e-6,
+        diffuser_grain_shape=args.grain_shape,
     )
     print(f"wrote scan {path}")
     return 0
@@ -140,6 +143,7 @@ def _retrieval_kwargs(args) -> dict:
         alpha=args.alpha,
         phase_scale=args.phase_scale,
         field_upsample=args.field_upsample if args.field_upsample == "auto" else int(args.field_upsample),
+        coherence_method=args.coherence_method,
         diffuser_model=args.diffuser_model,
         diffuser_material=args.diffuser_material,
         sample_material=args.sample_material,
@@ -258,6 +262,14 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
         "or a phase gradient above pi/2 per pixel: thick samples), 1 (the paper's detector grid), 2, 3",
     )
     p.add_argument(
+        "--coherence-method",
+        default="template",
+        choices=["template", "gaussian"],
+        help="pwf: how the coherence lengths are calibrated from the reference when the scan does not give them: "
+        "template (the IOTF fitted jointly with the sandpaper's own speckle spectrum) or gaussian (the paper's "
+        "Siegert fit alone, long on grains as coarse as P3000)",
+    )
+    p.add_argument(
         "--diffuser-model",
         default="single-material",
         choices=["single-material", "zero-phase"],
@@ -307,6 +319,7 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .diffusers import DEFAULT_GRIT, FEPA_P_GRIT_DIAMETER_M, GRAIN_SHAPES
     from .simulation import DEFAULT_PRESET, PRESETS
 
     p = argparse.ArgumentParser(prog="pwf-dask", description=__doc__.splitlines()[0])
@@ -360,6 +373,24 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SIGMA",
         help="the sample scatters at small angles (pores, fibres): the speckle behind its thickest part "
         "is blurred by a Gaussian of this sigma in pixels",
+    )
+    s.add_argument(
+        "--grit",
+        default=DEFAULT_GRIT,
+        choices=list(FEPA_P_GRIT_DIAMETER_M),
+        help=f"the diffuser's sandpaper grade (FEPA P; default {DEFAULT_GRIT}, the paper's, 6.5 um grains)",
+    )
+    s.add_argument(
+        "--grain-radius-um",
+        type=float,
+        metavar="R",
+        help="the diffuser's median grain radius in um (overrides --grit; e.g. 1.2 for sub-pixel grains)",
+    )
+    s.add_argument(
+        "--grain-shape",
+        default="spheres",
+        choices=list(GRAIN_SHAPES),
+        help="the diffuser's grains: spheres (default), faceted (pyramids, like crushed SiC) or mixed",
     )
     s.set_defaults(func=_simulate)
     i = sub.add_parser("ingest", help="TIFF or HDF5 detector files into a scan store (CONTRACT §1)")

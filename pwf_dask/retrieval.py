@@ -130,6 +130,28 @@ def auto_field_upsample(pixel_size_m: float, x_coh_m: float, y_coh_m: float, max
 FIELD_UPSAMPLE_GRADIENT_RAD_PER_PX = math.pi / 2
 
 
+#: Share of the diffuser transmission's power above :data:`DIFFUSER_ALIASING_FREQUENCY` (cycles
+#: per pixel) from which ``field_upsample="auto"`` puts the field on a 2x finer grid. A
+#: single-material fit to coarse grains (P3000 at 0.65 um pixels) is a phase screen whose
+#: gradients reach ~pi rad/px: its spectrum runs to the Nyquist frequency, and the sample's
+#: tilt wraps that part around the detector grid, moving it the wrong way. Measured (256^2,
+#: true lengths; share, phase gain on the detector grid -> 2x grid): grains of 1.2 um radius
+#: 0.038, 0.964 -> 0.968; 2.0 um 0.079, 0.888 -> 0.943; 3.25 um 0.103, 0.822 -> 0.971;
+#: 4.5 um 0.117, 0.861 -> 1.004. The paper's zero-phase estimate is band-limited (~0.01).
+DIFFUSER_ALIASING_FRACTION = 0.06
+DIFFUSER_ALIASING_FREQUENCY = 0.35
+
+
+def diffuser_aliasing(t, fft: FFT | None = None) -> float:
+    """Share of |t_k|^2 above :data:`DIFFUSER_ALIASING_FREQUENCY` cycles per pixel (one FFT)."""
+    xp = get_array_module(t)
+    fft = fft or FFT.for_module(xp)
+    power = xp.abs(fft.fft2(t)) ** 2
+    v, u = optics.frequency_grid(tuple(t.shape))
+    high = xp.asarray((u * u + v * v) > DIFFUSER_ALIASING_FREQUENCY**2)
+    return float(xp.sum(power[high]) / xp.sum(power))
+
+
 def phase_gradient_rad_per_px(phase, percentile: float = 99.0, smooth_px: float = 2.0) -> float:
     """A robust maximum of |grad phase| in rad per pixel: the ``percentile`` of the gradient
     magnitude (central differences) of the phase smoothed by a Gaussian of ``smooth_px``, so
@@ -308,6 +330,8 @@ def retrieve_projection(
     step: float = 1.0,
     coherence_length_x_m: float | None = None,
     coherence_length_y_m: float | None = None,
+    coherence_method: str = "template",
+    coherence_includes_pixel_blur: bool = False,
     preconditioner: bool = True,
     precision: str = "single",
     upsample: int | str = "auto",
@@ -343,7 +367,11 @@ def retrieve_projection(
     Parameters mirror the CLI: ``method`` (``"pwf"``), ``max_iter``, ``tol`` (1 - field
     correlation of successive iterates, the paper's 10^-0.00001 by default), ``gamma`` and
     ``alpha`` (Eqs. STF and Algorithm S2), ``coherence_length_x_m``/``_y_m`` (calibrated from
-    the reference by the Siegert fit when not given). Ablation switches: ``preconditioner``,
+    the reference when not given: :func:`pwf_dask.calibration.fit_coherence_lengths` by
+    ``coherence_method``, ``"template"`` (the IOTF fitted jointly with the diffuser's own
+    speckle spectrum) or ``"gaussian"`` (the paper's Siegert fit)). The model integrates
+    over the detector pixel on top of the IOTF unless the lengths already include the pixel's
+    blur (``coherence_includes_pixel_blur``; so do the ``"gaussian"`` fit's). Ablation switches: ``preconditioner``,
     ``gamma=0`` or ``alpha=0`` (no regularizer). ``precision`` is ``"single"`` (complex64) or
     ``"double"``. ``upsample`` forms |v|^2 on a finer grid (``"auto"``: when it would alias);
     ``pad`` extends the computational grid by that many pixels each side (``"auto"``: the
@@ -363,7 +391,9 @@ def retrieve_projection(
     ``field_upsample`` evaluates exp(psi), t and both propagations on a finer grid (psi stays
     on the detector grid; :func:`pwf_dask.solver.build_model`): ``"auto"`` starts on the grid
     of :func:`auto_field_upsample` (the detector grid unless the pixel is coarser than the
-    authors' working pixel) and goes on with one twice as fine when the solution's phase
+    authors' working pixel), on a 2x grid at least when the diffuser estimate aliases there
+    (:func:`diffuser_aliasing` above :data:`DIFFUSER_ALIASING_FRACTION`: coarse grains), and
+    goes on with one twice as fine when the solution's phase
     gradient exceeds :data:`FIELD_UPSAMPLE_GRADIENT_RAD_PER_PX` per step of that grid (thick
     samples); 1 is the paper's model.
     ``initial`` starts Algorithm S1 from zero (the paper), from UMPA's one-image estimate
@@ -430,10 +460,24 @@ def retrieve_projection(
     n_outliers = int(outliers.sum())
     wavelength = optics.wavelength_m(energy_eV)
     calibrated = coherence_length_x_m is None or coherence_length_y_m is None
+    coherence_fit = None
     if calibrated:
-        cx, cy = calibration.coherence_lengths(ref, pixel_size_m)
-        coherence_length_x_m = cx if coherence_length_x_m is None else coherence_length_x_m
-        coherence_length_y_m = cy if coherence_length_y_m is None else coherence_length_y_m
+        coherence_fit = calibration.fit_coherence_lengths(
+            ref,
+            pixel_size_m,
+            energy_eV=energy_eV,
+            diffuser_detector_distance_m=diffuser_detector_distance_m + diffuser_upstream_m,
+            diffuser_material=diffuser_material,
+            method=coherence_method,
+        )
+        if coherence_length_x_m is None:
+            coherence_length_x_m = coherence_fit.x_m
+        if coherence_length_y_m is None:
+            coherence_length_y_m = coherence_fit.y_m
+    if coherence_fit is not None:
+        coherence_includes_pixel_blur = coherence_fit.includes_pixel_blur
+    # the source's lengths (given, or the template fit's) leave the pixel's own blur to the model
+    pixel_integration = not coherence_includes_pixel_blur
     if pad == "auto":
         pad = auto_pad(
             pixel_size_m,
@@ -492,7 +536,7 @@ def retrieve_projection(
         diffuser_detector_distance_m=diffuser_detector_distance_m,
         coherence_length_x_m=coherence_length_x_m,
         coherence_length_y_m=coherence_length_y_m,
-        pixel_integration=not calibrated,
+        pixel_integration=pixel_integration,
         gamma=gamma,
         alpha=alpha,
         use_preconditioner=preconditioner,
@@ -505,11 +549,13 @@ def retrieve_projection(
         fft=fft,
     )
     auto_field = field_upsample == "auto"
-    first_field = (
-        auto_field_upsample(pixel_size_m, coherence_length_x_m, coherence_length_y_m)
-        if auto_field
-        else int(field_upsample)
-    )
+    aliasing = diffuser_aliasing(t, fft) if auto_field else None
+    if auto_field:
+        first_field = auto_field_upsample(pixel_size_m, coherence_length_x_m, coherence_length_y_m)
+        if aliasing > DIFFUSER_ALIASING_FRACTION:
+            first_field = max(first_field, 2)
+    else:
+        first_field = int(field_upsample)
     model = build(field_upsample=first_field)
     y_full = xp.zeros(shape, dtype=rdt)
     y_full[model.frame] = y / scale
@@ -578,9 +624,14 @@ def retrieve_projection(
         "field_upsample": model.field_upsample,
         "field_upsample_requested": field_upsample,
         "phase_gradient_rad_per_px": gradient,
+        "diffuser_aliasing": aliasing,
         "initial": initial if isinstance(initial, str) else "array",
         "pad": pad,
         "coherence_calibrated": calibrated,
+        "coherence_method": coherence_fit.method if coherence_fit else "given",
+        "coherence_template": coherence_fit.template if coherence_fit else "",
+        "coherence_grain_radius_m": coherence_fit.grain_radius_m if coherence_fit else None,
+        "pixel_integration": pixel_integration,
         "diffuser_model": diffuser_model,
         "diffuser_given": diffuser is not None,
         "diffuser_beta_over_delta": kappa,

@@ -6,8 +6,9 @@ by ``margin_px`` detector pixels each side (so periodic wrap-around never reache
 1. sample: analytic phantom, exact chord lengths through a cylinder and spheres, delta and
    beta from xraydb, field exp(-i k delta L - k beta L) (the exp(+ikz) convention);
 2. propagation over L1 (angular spectrum; skipped when L1 = 0);
-3. a sandpaper-like diffuser: grains of silicon carbide with radii spread well below the
-   detector pixel, in several layers (thin-object transmission);
+3. the paper's diffuser by default: four layers of P3000 sandpaper, silicon-carbide grains
+   6.5 um across with a FEPA-like spread of sizes (:mod:`pwf_dask.diffusers`; other grits and
+   grain shapes as options), a thin-object transmission;
    (or, with ``diffuser_upstream_m``, the diffuser before the sample: diffuser, free space,
    sample, the geometry the algorithms see as L1 = 0);
 4. propagation over L2, intensity, partial-coherence blur by the IPSF, Eq. (IPSF);
@@ -23,7 +24,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import optics
+from . import diffusers, optics
 from .backend import FFT
 from .calibration import shift_transmission
 from .materials import delta_beta
@@ -120,59 +121,6 @@ def default_phantom(
     return Phantom(cylinder_radius_m=big_r, spheres=tuple(spheres))
 
 
-def sandpaper_thickness(
-    shape: tuple[int, int],
-    spacing_m: float,
-    rng: np.random.Generator,
-    layers: int = 4,
-    coverage: float = 0.6,
-    radius_median_m: float = 1.2e-6,
-    radius_spread: float = 0.6,
-    radius_bins: int = 8,
-) -> np.ndarray:
-    """Thickness map (m) of layers of abrasive grains: spheres with log-normal radii.
-
-    The default median radius 1.2 um and spread put a good share of grains below a 0.65 um
-    detector pixel, as real P3000 sandpaper has; grain edges are sharp at any scale.
-    """
-    ny, nx = shape
-    area = ny * nx * spacing_m**2
-    edges = np.exp(
-        np.linspace(
-            np.log(radius_median_m) - 2 * radius_spread, np.log(radius_median_m) + 2 * radius_spread, radius_bins + 1
-        )
-    )
-    centres = np.sqrt(edges[:-1] * edges[1:])
-    from scipy.stats import norm
-
-    cdf = norm.cdf((np.log(edges) - np.log(radius_median_m)) / radius_spread)
-    frac = np.diff(cdf)
-    frac /= frac.sum()
-    mean_area = float(np.sum(frac * np.pi * centres**2))
-    n_total = layers * coverage * area / mean_area
-    thickness_spec = np.zeros((ny, nx // 2 + 1), complex)
-    for r, f in zip(centres, frac):
-        n = rng.poisson(n_total * f)
-        if n == 0:
-            continue
-        imp = np.zeros(shape)
-        np.add.at(imp, (rng.integers(0, ny, n), rng.integers(0, nx, n)), 1.0)
-        rp = r / spacing_m
-        half = int(np.ceil(rp)) + 1
-        yy, xx = np.mgrid[-half : half + 1, -half : half + 1]
-        # chord of a sphere, averaged over 4 x 4 sub-samples of each grid cell
-        sub = (np.arange(4) + 0.5) / 4 - 0.5
-        k = np.zeros(yy.shape)
-        for dy in sub:
-            for dx in sub:
-                k += 2 * np.sqrt(np.clip(rp**2 - (yy + dy) ** 2 - (xx + dx) ** 2, 0, None))
-        k *= spacing_m / 16
-        kern = np.zeros(shape)
-        kern[yy % ny, xx % nx] = k
-        thickness_spec += np.fft.rfft2(imp) * np.fft.rfft2(kern)
-    return np.fft.irfft2(thickness_spec, s=shape)
-
-
 def _geometry(obj) -> dict:
     return {name: getattr(obj, name) for name in GEOMETRY_KEYS}
 
@@ -204,6 +152,14 @@ class SimulatedProjection:
         return _geometry(self)
 
 
+#: ``SpeckleSetup`` fields of the finer sandpaper simulated before the paper's grit became the
+#: default (grains of 1.2 um median radius, spread 0.6: many below the 0.65 um pixel). Its
+#: speckle is finer than the coherence length, so PWF stays on the detector grid and the
+#: Siegert fit's premise nearly holds; tests of a geometry or a detector defect use it to stay
+#: fast, and the stability map's grain axis sweeps from it to coarser grits.
+FINE_DIFFUSER = {"diffuser_radius_median_m": 1.2e-6, "diffuser_radius_spread": 0.6}
+
+
 @dataclass
 class SpeckleSetup:
     """Geometry and source of a simulated speckle measurement (defaults: the paper's set-up)."""
@@ -218,9 +174,15 @@ class SpeckleSetup:
     photons: float = 1e4
     oversample: int = 2
     margin_px: int = 32
-    diffuser_layers: int = 4
-    diffuser_material: str = "silicon carbide"
-    diffuser_radius_median_m: float = 1.2e-6
+    #: the paper's diffuser (Methods): four layers of P3000 silicon-carbide sandpaper
+    diffuser_layers: int = diffusers.DEFAULT_LAYERS
+    diffuser_material: str = diffusers.DEFAULT_MATERIAL
+    #: a FEPA P grade (:data:`pwf_dask.diffusers.FEPA_P_GRIT_DIAMETER_M`) setting the median grain
+    #: radius, unless ``diffuser_radius_median_m`` gives it directly
+    diffuser_grit: str = diffusers.DEFAULT_GRIT
+    diffuser_radius_median_m: float | None = None
+    diffuser_radius_spread: float = diffusers.FEPA_SPREAD
+    diffuser_grain_shape: str = "spheres"  # or "faceted", "mixed" (:data:`pwf_dask.diffusers.GRAIN_SHAPES`)
     rotation_axis_offset_m: float = 0.0
     #: > 0: the diffuser sits this far *upstream* of the sample instead of downstream. The
     #: algorithms then see L1 = 0 and L2 = the sample-detector distance
@@ -232,6 +194,13 @@ class SpeckleSetup:
         return _geometry(self)
 
     def __post_init__(self):
+        if self.diffuser_radius_median_m is None:
+            self.diffuser_radius_median_m = diffusers.grit_radius_m(self.diffuser_grit)
+        if self.diffuser_grain_shape not in diffusers.GRAIN_SHAPES:
+            raise ValueError(
+                f"unknown diffuser_grain_shape {self.diffuser_grain_shape!r}: choose one of "
+                f"{', '.join(diffusers.GRAIN_SHAPES)}"
+            )
         if self.diffuser_upstream_m < 0:
             raise ValueError(f"diffuser_upstream_m must be >= 0, got {self.diffuser_upstream_m}")
         if self.diffuser_upstream_m > 0 and self.sample_diffuser_distance_m != 0:
@@ -299,12 +268,14 @@ class SpeckleSimulator:
         self.k = 2 * np.pi / self.wavelength
         self.fft = FFT.for_module(np)
         # diffuser larger than the frame so it can be shifted for K positions
-        thick = sandpaper_thickness(
+        thick = diffusers.grain_thickness(
             self.fine_shape,
             self.spacing,
             self.rng,
-            layers=st.diffuser_layers,
             radius_median_m=st.diffuser_radius_median_m,
+            radius_spread=st.diffuser_radius_spread,
+            layers=st.diffuser_layers,
+            grain_shape=st.diffuser_grain_shape,
         )
         d, b = delta_beta(st.diffuser_material, st.energy_eV)
         self.diffuser_thickness = thick
@@ -585,6 +556,9 @@ def simulate_scan(
     diffuser_drift_px: tuple[float, float] = (0.0, 0.0),
     cylinder_width_fraction: float | None = None,
     dark_field_px: float = 0.0,
+    diffuser_grit: str = diffusers.DEFAULT_GRIT,
+    diffuser_radius_median_m: float | None = None,
+    diffuser_grain_shape: str = "spheres",
     progress: bool = True,
 ) -> str:
     """Simulate a whole scan into a Zarr store (CONTRACT §1) and return its path.
@@ -603,7 +577,10 @@ def simulate_scan(
     :data:`SCAN_CYLINDER_WIDTH_FRACTION`); above 1 the scan is an interior scan
     (:func:`scan_phantom`). ``dark_field_px`` > 0: the sample scatters at small angles and
     blurs the speckle behind its thickest part by a Gaussian of that sigma (detector pixels;
-    :func:`dark_field_blur`). The phantom and the truth are recorded in the attributes.
+    :func:`dark_field_blur`). The diffuser is four layers of ``diffuser_grit`` sandpaper (the
+    paper's P3000 by default), or grains of ``diffuser_radius_median_m``, of
+    ``diffuser_grain_shape`` (:mod:`pwf_dask.diffusers`). The phantom, the diffuser and the
+    truth are recorded in the attributes.
     """
     from . import scan_io
 
@@ -628,7 +605,13 @@ def simulate_scan(
         raise ValueError(f"simulate: dark_field_px is a blur sigma in [0, 20] px, got {dark_field_px}")
     if not 0 <= zingers < 0.1:
         raise ValueError(f"simulate: zingers is a fraction of the pixels in [0, 0.1), got {zingers}")
-    setup = SpeckleSetup(shape=shape, photons=photons)
+    setup = SpeckleSetup(
+        shape=shape,
+        photons=photons,
+        diffuser_grit=diffuser_grit,
+        diffuser_radius_median_m=diffuser_radius_median_m,
+        diffuser_grain_shape=diffuser_grain_shape,
+    )
     if diffuser_upstream_m:
         setup = replace(setup, sample_diffuser_distance_m=0.0, diffuser_upstream_m=diffuser_upstream_m)
     p = setup.pixel_size_m
@@ -651,6 +634,9 @@ def simulate_scan(
         "simulation_diffuser_upstream_m": setup.diffuser_upstream_m,
         "simulation_zingers": zingers,
         "simulation_dark_field_px": float(dark_field_px),
+        "simulation_diffuser_grit": setup.diffuser_grit if diffuser_radius_median_m is None else "",
+        "simulation_diffuser_radius_median_m": setup.diffuser_radius_median_m,
+        "simulation_diffuser_grain_shape": setup.diffuser_grain_shape,
         "simulation_diffuser_drift_y_px": float(diffuser_drift_px[0]),
         "simulation_diffuser_drift_x_px": float(diffuser_drift_px[1]),
         "simulation_phantom": phantom_to_json(phantom),

@@ -1,8 +1,8 @@
 """Where each method fails: the stability map (issue 4), one projection against known truth.
 
 One base scene (the paper's optics: 10 keV, 0.65 um pixels, L1 = 3 mm, L2 = 20 mm, coherence
-lengths 3.47 / 4.31 um, sub-pixel SiC sandpaper, 1e4 photons per pixel, the cellulose rod with
-glass beads) is varied along one axis at a time:
+lengths 3.47 / 4.31 um, four layers of P3000 SiC sandpaper, 1e4 photons per pixel, the
+cellulose rod with glass beads) is varied along one axis at a time:
 
 - ``dose``: photons per pixel, 1e2 - 1e6 (Poisson noise);
 - ``max_phase_pi``: sample thickness along the beam, the projected delta and beta scaled so the
@@ -21,7 +21,11 @@ glass beads) is varied along one axis at a time:
 - ``ablation``: PWF without the preconditioner, without the regularization window (gamma = 0),
   and without the regularizer (alpha = 0);
 - ``bead_radius_px``: one glass bead of 4 - 32 px radius in the base cylinder (the paper's beads
-  are <= 106 um across, i.e. up to ~80 px radius at 0.65 um): small strong features.
+  are <= 106 um across, i.e. up to ~80 px radius at 0.65 um): small strong features;
+- ``grain_um``: the diffuser's median grain radius, 1 - 6 um (P3000 is 3.25 um);
+- ``calibration``: PWF given the true coherence lengths (every other point), or calibrating
+  them from its reference by the template fit (the default of ``retrieve_projection``) or by
+  the paper's Gaussian alone.
 
 Every point reports the measured physical coordinates (largest phase in pi, 99th-percentile
 speckle displacement over the grain size) beside the axis value, and for every method the phase
@@ -60,8 +64,10 @@ AXES: dict[str, list] = {
     "bead_radius_px": [4.0, 8.0, 16.0, 32.0],
     "dark_field_px": [0.0, 0.5, 1.0, 2.0],
     "pixel_um": [0.65, 1.0, 1.3, 2.0],
+    "grain_um": [1.0, 2.0, 3.25, 4.5, 6.0],
+    "calibration": ["true lengths", "template", "gaussian"],
 }
-PWF_ONLY_AXES = ("coherence_error", "ablation")
+PWF_ONLY_AXES = ("coherence_error", "ablation", "calibration")
 
 # (label, method, K diffuser positions, options)
 METHOD_RUNS: list[tuple[str, str, int, dict]] = [
@@ -271,6 +277,11 @@ def _point_setups(axis: str, value, base: SpeckleSetup):
     elif axis == "pixel_um":
         # the same sample and beam on a coarser detector: the frame (256 px) sees more of it
         setup = replace(base, pixel_size_m=float(value) * 1e-6)
+    elif axis == "grain_um":
+        setup = replace(base, diffuser_radius_median_m=float(value) * 1e-6)
+    elif axis == "calibration":
+        # PWF calibrates the lengths from each reference itself (the baselines use none)
+        pwf = {} if value == "true lengths" else {"coherence_method": value}
     else:
         raise ValueError(f"unknown stability axis {axis!r}: choose one of {', '.join(AXES)}")
     return setup, lateral, target, absorption, photons, pwf, dark
@@ -282,11 +293,14 @@ def stability_map(
     methods: list[tuple[str, str, int, dict]] | None = None,
     seed: int = 0,
     progress: bool = True,
+    base: SpeckleSetup | None = None,
 ) -> list[dict]:
-    """All rows of the map: one per (axis, value, method), with errors and wall time."""
+    """All rows of the map: one per (axis, value, method), with errors and wall time. ``base``
+    is the scene every axis varies (default: the paper's set-up, P3000 diffuser, ``shape``)."""
     axes = AXES if axes is None else axes
     methods = METHOD_RUNS if methods is None else methods
-    base = SpeckleSetup(shape=shape)
+    base = base or SpeckleSetup(shape=shape)
+    shape = base.shape
     fov = shape[1] * base.pixel_size_m
     phantom0 = default_phantom(fov, np.random.default_rng(seed + 1), height_m=shape[0] * base.pixel_size_m)
     kmax = max(k for _, _, k, _ in methods)
@@ -322,10 +336,11 @@ def stability_map(
                 s, r = scene.images(photons, k, seed=seed + 7)
                 kw = dict(opts)
                 if method == "pwf":
-                    kw.update(
-                        coherence_length_x_m=setup.coherence_length_x_m,
-                        coherence_length_y_m=setup.coherence_length_y_m,
-                    )
+                    if "coherence_method" not in pwf_over:  # the truth, unless the point calibrates
+                        kw.update(
+                            coherence_length_x_m=setup.coherence_length_x_m,
+                            coherence_length_y_m=setup.coherence_length_y_m,
+                        )
                     kw.update(pwf_over)
                 t0 = time.perf_counter()
                 res = retrieve_projection(

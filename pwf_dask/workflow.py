@@ -248,15 +248,26 @@ def retrieve_scan(
             f"method {method} needs K >= {MIN_POSITIONS[method]} diffuser positions; the scan has {info.n_positions}"
         )
     g, flat, dark, corrected = _scan_frames(scan_path)
-    coherence = []
+    coherence, fits = [], []
     for p in range(info.n_positions if method == "pwf" else 0):
         cx, cy = info.coherence_length_x_m, info.coherence_length_y_m
         if cx is None or cy is None:
             ref = _read_reference(g, p, flat, dark, corrected, outlier_sigma)
-            fx, fy = calibration.coherence_lengths(ref, info.pixel_size_m)
-            cx = fx if cx is None else cx
-            cy = fy if cy is None else cy
+            fit = calibration.fit_coherence_lengths(
+                ref,
+                info.pixel_size_m,
+                energy_eV=info.energy_eV,
+                diffuser_detector_distance_m=info.diffuser_detector_distance_m + options["diffuser_upstream_m"],
+                diffuser_material=options.get("diffuser_material", "silicon carbide"),
+                method=options.get("coherence_method", "template"),
+            )
+            fits.append(fit)
+            cx = fit.x_m if cx is None else cx
+            cy = fit.y_m if cy is None else cy
         coherence.append((float(cx), float(cy)))
+    if fits:
+        # the tasks are given the lengths: they must know whether the pixel's blur is in them
+        options["coherence_includes_pixel_blur"] = fits[0].includes_pixel_blur
     if method != "pwf":
         coherence = [(float("nan"), float("nan"))] * info.n_positions
     if method in MULTI_IMAGE:
@@ -278,6 +289,11 @@ def retrieve_scan(
         "coherence_length_y_m": float(np.mean([c[1] for c in coherence])) if method == "pwf" else "n/a",
         "coherence_lengths_per_position_m": json.dumps(coherence) if method == "pwf" else "n/a",
         "coherence_calibrated": info.coherence_length_x_m is None or info.coherence_length_y_m is None,
+        "coherence_fits_per_position": json.dumps(
+            [{"method": f.method, "template": f.template, "grain_radius_m": f.grain_radius_m} for f in fits]
+        )
+        if fits
+        else "n/a",
         "pwf_dask_version": __version__,
         "angle_chain": angle_chain,
         "diffuser_model": options.get("diffuser_model", "single-material") if method == "pwf" else "n/a",

