@@ -176,6 +176,13 @@ def white_noise_floor(img: np.ndarray) -> float:
     return float(np.median(spec[corners])) / np.log(2.0)
 
 
+def photon_noise_pct(image, mean_reference: float) -> float:
+    """RMS photon noise of ``image`` in % of the mean reference, from its white spectral floor
+    (:func:`white_noise_floor`; the IOTF has blurred away every structure out there). This is
+    the level :func:`pwf_dask.solver.discrepancy_alpha` fits the data down to."""
+    return 100.0 * float(np.sqrt(white_noise_floor(np.asarray(image, np.float64) / mean_reference)))
+
+
 def _pixel_transfer_squared(tile: tuple[int, int]) -> np.ndarray:
     """|sinc(u) sinc(v)|^2 on a tile's fft grid (cycles per pixel): what a detector pixel
     does to the spectrum of the intensity it integrates."""

@@ -246,7 +246,8 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--alpha",
         default=str(DEFAULT_ALPHA).strip("()"),
-        help="regularization weights (the paper's; 0.1+0.05j for small strong features, README)",
+        help="regularization weights: a complex number (default: %(default)s, docs/methods.md), 'paper' "
+        "(0.1+0.01j) or 'discrepancy' (Im(alpha) by the discrepancy principle, once per scan)",
     )
     p.add_argument(
         "--phase-scale",

@@ -41,6 +41,38 @@ AUTHORS_RELEASE: dict[str, Any] = dict(
 )
 
 
+#: ``alpha`` spelled by name: "discrepancy" chooses Im(alpha) from the data
+#: (:func:`pwf_dask.solver.discrepancy_alpha`), "paper" is the paper's 0.1 + 0.01i.
+ALPHA_RULES = ("discrepancy", "paper")
+
+
+def parse_alpha(alpha) -> complex | str:
+    """``alpha`` as "discrepancy" or a complex number; one line naming the option otherwise."""
+    if isinstance(alpha, str):
+        text = alpha.replace(" ", "").lower()
+        if text == "discrepancy":
+            return "discrepancy"
+        if text == "paper":
+            return solver.PAPER_ALPHA
+        try:
+            alpha = complex(text)
+        except ValueError:
+            raise ValueError(
+                f"alpha must be 'auto', 'paper' or a complex number like 0.1+0.01j, got {alpha!r}"
+            ) from None
+    alpha = complex(alpha)
+    if not (np.isfinite(alpha.real) and np.isfinite(alpha.imag)) or alpha.real < 0 or alpha.imag < 0:
+        raise ValueError(f"alpha must have finite, non-negative real and imaginary parts, got {alpha}")
+    return alpha
+
+
+def residual_rmse_pct(sol, model, excluded=None) -> float:
+    """RMS of the data residual over the frame's fitted pixels, in % of the mean reference."""
+    res = to_numpy(abs(sol.evaluation.r[model.frame])) * 100.0
+    fitted = res[~to_numpy(excluded)] if excluded is not None else res
+    return float(np.sqrt(np.mean(fitted.astype(np.float64) ** 2)))
+
+
 @dataclass
 class RetrievalResult:
     """Phase and attenuation of one projection (arrays of the input's kind and shape)."""
@@ -442,8 +474,7 @@ def retrieve_projection(
             f"got {sample_diffuser_distance_m}, {diffuser_detector_distance_m}"
         )
     check_diffuser_upstream(diffuser_upstream_m, sample_diffuser_distance_m)
-    if isinstance(alpha, str):
-        alpha = complex(alpha.replace(" ", ""))
+    alpha = parse_alpha(alpha)
     if isinstance(initial, str) and initial not in ("zero", "umpa"):
         raise ValueError(f"unknown initial {initial!r}: choose 'zero', 'umpa' or pass psi")
     if not isinstance(initial, str) and tuple(initial.shape) != tuple(y.shape):
@@ -538,7 +569,7 @@ def retrieve_projection(
         coherence_length_y_m=coherence_length_y_m,
         pixel_integration=pixel_integration,
         gamma=gamma,
-        alpha=alpha,
+        alpha=solver.PAPER_ALPHA if alpha == "discrepancy" else alpha,  # each rung rebuilds it
         use_preconditioner=preconditioner,
         upsample=upsample,
         pad=pad,
@@ -575,7 +606,20 @@ def retrieve_projection(
         rtol=rtol,
         jtol=jtol,
     )
-    sol = run(model, psi0=psi0)
+    alpha_trials = None
+    if alpha == "discrepancy":
+        noise_pct = calibration.photon_noise_pct(to_numpy(y), scale)
+
+        def solve(a, start):
+            trial = build(field_upsample=first_field, alpha=a)
+            sol = run(trial, psi0=psi0 if start is None else start)
+            return sol, residual_rmse_pct(sol, trial, excluded)
+
+        choice = solver.discrepancy_alpha(solve, noise_pct)
+        alpha, sol, alpha_trials = choice.alpha, choice.result, choice.trials
+        model = build(field_upsample=first_field, alpha=alpha)
+    else:
+        sol = run(model, psi0=psi0)
     # only "auto" needs the statistic: a smoothing pass and a percentile over the frame
     gradient = phase_gradient_rad_per_px(sol.psi[model.frame].imag) if auto_field else None
     iterations, history = sol.iterations, list(sol.objective_history)
@@ -601,11 +645,12 @@ def retrieve_projection(
         phase = bg.zero_background(phase, fit)
         attenuation = bg.zero_background(attenuation, fit)
     res = to_numpy(xp.abs(sol.evaluation.r[model.frame])) * 100.0
-    fitted = res[~to_numpy(excluded)] if excluded is not None else res  # the rms is over the pixels fitted
     params = {
         "method": method,
         "gamma": gamma,
         "alpha": str(complex(alpha)).strip("()"),
+        "alpha_rule": "discrepancy" if alpha_trials else "given",
+        "alpha_trials": [[str(a).strip("()"), round(r, 4), n] for a, r, n in alpha_trials or []],
         "step": step,
         "step_search": step_search,
         "restart": restart,
@@ -653,7 +698,7 @@ def retrieve_projection(
         iterations=iterations,
         converged=sol.converged,
         residual=xp.asarray(res.astype(rdt)),
-        residual_rmse=float(np.sqrt(np.mean(fitted.astype(np.float64) ** 2))),
+        residual_rmse=residual_rmse_pct(sol, model, excluded),
         loss_history=history,
         coherence_length_x_m=float(coherence_length_x_m),
         coherence_length_y_m=float(coherence_length_y_m),

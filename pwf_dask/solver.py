@@ -35,6 +35,7 @@ Re(alpha) = 0.1 damp the attenuation (gain 0.78), the printed form gives gains w
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import ModuleType
 from typing import Any
@@ -47,13 +48,21 @@ from .backend import FFT, abs2, complex_dtype, complex_exp, inner, real_dtype
 #: The paper's stop rule: normalised correlation of successive fields > 10^-0.00001.
 PAPER_TOL = 1.0 - 10.0 ** (-0.00001)
 
-#: Regularization weights of Algorithm S2: the paper's value (the default), and the one we
-#: recommend for small strong features. Im(alpha) = 0.05 keeps the small-bead phase contrast
-#: within 15 % (+13 % against +28 % at 512^2), brings the demo scan's bead beta within 20 %,
-#: and holds the stability map's weak (1 pi), absorbing (10x beta), low-dose and L2 = 10 mm
-#: points better, for 0.003 more relative phase error at the base point (README).
-DEFAULT_ALPHA = 0.1 + 0.01j
-STRONG_FEATURE_ALPHA = 0.1 + 0.05j
+#: Regularization weights of Algorithm S2: the paper's value (``alpha="paper"``), and the
+#: default. With the paper's Im(alpha) the phase outside the STF fits the noise and beads of
+#: 2-12 coherence lengths overshoot by 30-50 % on the paper's diffuser; Im(alpha) = 0.05 holds
+#: them within 5 % from 1e3 to 1e5 ph/px (docs/methods.md, "Regularization"), a choice no
+#: data rule tried beat (:func:`discrepancy_alpha` fails at both ends of that range).
+PAPER_ALPHA = 0.1 + 0.01j
+DEFAULT_ALPHA = 0.1 + 0.05j
+
+#: Im(alpha) tried by :func:`discrepancy_alpha` (Re(alpha) stays the paper's 0.1: raising it
+#: damps a small bead's attenuation and the phase overshoots to compensate, docs/methods.md),
+#: the rung tried first (the usual answer), and the residual the rule aims at, in units of
+#: the photon noise.
+ALPHA_IMAG_LADDER = (0.01, 0.02, 0.05, 0.1, 0.2, 0.5)
+ALPHA_LADDER_START = 2
+DISCREPANCY_TARGET = 1.0
 
 #: A gradient restart after two steps psi_k - psi_{k-1} this anti-aligned (cosine below it)
 #: was caused by a mode too stiff for eta (see :func:`pwf`, "Step"): eta is halved.
@@ -820,3 +829,60 @@ def pwf(
         backtracks=backtracks,
         stop_reason=reason,
     )
+
+
+@dataclass
+class AlphaChoice:
+    """What :func:`discrepancy_alpha` chose, the run it chose it from, and every rung tried
+    as (alpha, residual rms / noise rms, iterations)."""
+
+    alpha: complex
+    result: Any
+    trials: list[tuple[complex, float, int]]
+
+
+def discrepancy_alpha(
+    solve: Callable[[complex, Any], tuple[Any, float]],
+    noise_pct: float,
+    *,
+    real: float = PAPER_ALPHA.real,
+    ladder: tuple[float, ...] = ALPHA_IMAG_LADDER,
+    start: int = ALPHA_LADDER_START,
+    target: float = DISCREPANCY_TARGET,
+) -> AlphaChoice:
+    """Im(alpha) by Morozov's discrepancy principle: the strongest phase regularization whose
+    data residual stays at or below the photon noise (``target`` x ``noise_pct``); the rule of
+    ``alpha="discrepancy"``.
+
+    The paper fixes alpha = 0.1 + 0.01i (Methods, regularization window). Outside the STF the
+    data carry little of psi, and with Im(alpha) that weak the solution fits the noise there: its
+    residual falls 7 % below the noise and small beads' phase overshoots by 30-50 % (256^2,
+    P3000). At 1e4 ph/px this rule lands on 0.1 + 0.05i; at 1e3 the residual stays below the
+    noise up to Im(alpha) = 0.5 (PWF fits part of the noise inside the STF too) and it
+    over-regularizes, at 1e5 the model's own error exceeds the noise and it keeps the paper's
+    alpha (docs/methods.md, "Regularization"). Not the default for that reason. ``solve(alpha, psi0)`` runs
+    Algorithm S1 from ``psi0`` (None: its own start) and returns (result, residual rms in % of
+    the mean reference); each rung starts from the previous rung's psi (``result.psi``). The
+    search starts at ``ladder[start]`` and walks up while the residual stays at or below the
+    target, or down until it does; the paper's rung is the floor.
+    """
+    trials: list[tuple[complex, float, int]] = []
+    runs: dict[int, Any] = {}
+
+    def attempt(i: int, psi0) -> float:
+        alpha = complex(real, ladder[i])
+        result, rmse_pct = solve(alpha, psi0)
+        runs[i] = result
+        ratio = rmse_pct / noise_pct
+        trials.append((alpha, ratio, int(result.iterations)))
+        return ratio
+
+    i = start
+    if attempt(i, None) <= target:
+        while i + 1 < len(ladder) and attempt(i + 1, runs[i].psi) <= target:
+            i += 1
+    else:
+        while i > 0 and attempt(i - 1, runs[i].psi) > target:
+            i -= 1
+        i = max(i - 1, 0)
+    return AlphaChoice(complex(real, ladder[i]), runs[i], trials)

@@ -48,7 +48,7 @@ import numpy as np
 from . import optics
 from .retrieval import retrieve_projection
 from .simulation import Phantom, SpeckleSetup, SpeckleSimulator, Sphere, default_phantom
-from .solver import STRONG_FEATURE_ALPHA
+from .solver import PAPER_ALPHA
 
 PHASE_ERROR_THRESHOLD = 0.25
 
@@ -72,7 +72,7 @@ PWF_ONLY_AXES = ("coherence_error", "ablation", "calibration")
 # (label, method, K diffuser positions, options)
 METHOD_RUNS: list[tuple[str, str, int, dict]] = [
     ("PWF K=1", "pwf", 1, dict(max_iter=500)),
-    ("PWF K=1 a.05j", "pwf", 1, dict(max_iter=500, alpha=STRONG_FEATURE_ALPHA)),
+    ("PWF K=1 paper alpha", "pwf", 1, dict(max_iter=500, alpha=PAPER_ALPHA)),
     ("LCS K=12", "lcs", 12, {}),
     ("UMPA K=12 w5", "umpa", 12, dict(tracking_options={"window": 5})),
     ("UMPA K=1 w7", "umpa", 1, {}),

@@ -23,8 +23,8 @@ from .backend import resolve_device, to_numpy
 from .cluster import Runner, worker_fft_threads
 from .detector import DEFAULT_OUTLIER_SIGMA, check_threshold, repair_outliers
 from .optics import wavelength_m
-from .retrieval import METHODS, check_diffuser_drift, check_diffuser_upstream
-from .solver import DEFAULT_ALPHA, PAPER_TOL
+from .retrieval import METHODS, check_diffuser_drift, check_diffuser_upstream, parse_alpha
+from .solver import DEFAULT_ALPHA, PAPER_ALPHA, PAPER_TOL
 from .tracking import MIN_POSITIONS
 
 #: methods that combine the K diffuser positions of one angle into one projection
@@ -98,10 +98,29 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
     """
     import zarr
 
+    p, a = item
+    t0 = time.perf_counter()
+    res = _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, coherence, start_from)
+    out = zarr.open_group(str(recon_path), mode="r+", use_consolidated=False)
+    out["phase"][p, a] = to_numpy(res.phase).astype(np.float32)
+    out["attenuation"][p, a] = to_numpy(res.attenuation).astype(np.float32)
+    out["converged"][p, a] = bool(res.converged)
+    out["residual_rmse"][p, a] = np.float32(res.residual_rmse)
+    if "outlier_pixels" in out:  # stores made before the detector test lack it
+        out["outlier_pixels"][p, a] = np.int32(res.parameters.get("outlier_pixels", 0))
+    if "diffuser_drift_px" in res.parameters and "diffuser_drift_y_px" in out:
+        out["diffuser_drift_y_px"][p, a], out["diffuser_drift_x_px"][p, a] = res.parameters["diffuser_drift_px"]
+    out["iterations"][p, a] = np.int32(res.iterations)  # last: marks the projection done
+    return p, a, res.iterations, res.converged, res.residual_rmse, time.perf_counter() - t0, _peak_rss_mb()
+
+
+def _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, coherence, start_from=None):
+    """Read and correct one projection and its reference, and retrieve it."""
+    import zarr
+
     from .retrieval import retrieve_projection
 
     p, a = item
-    t0 = time.perf_counter()
     g, flat, dark, corrected = _scan_frames(scan_path)
     if options.get("method") in MULTI_IMAGE:  # all K positions at this angle, one result
         npos = g["projections"].shape[0]
@@ -130,7 +149,7 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
             device,
             worker_fft_threads(fft_workers),
         )
-    res = retrieve_projection(
+    return retrieve_projection(
         xp.asarray(sample),
         xp.asarray(reference),
         energy_eV=float(g.attrs["energy_eV"]),
@@ -143,17 +162,27 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
         **options,
         **extra,
     )
-    out = zarr.open_group(str(recon_path), mode="r+", use_consolidated=False)
-    out["phase"][p, a] = to_numpy(res.phase).astype(np.float32)
-    out["attenuation"][p, a] = to_numpy(res.attenuation).astype(np.float32)
-    out["converged"][p, a] = bool(res.converged)
-    out["residual_rmse"][p, a] = np.float32(res.residual_rmse)
-    if "outlier_pixels" in out:  # stores made before the detector test lack it
-        out["outlier_pixels"][p, a] = np.int32(res.parameters.get("outlier_pixels", 0))
-    if "diffuser_drift_px" in res.parameters and "diffuser_drift_y_px" in out:
-        out["diffuser_drift_y_px"][p, a], out["diffuser_drift_x_px"][p, a] = res.parameters["diffuser_drift_px"]
-    out["iterations"][p, a] = np.int32(res.iterations)  # last: marks the projection done
-    return p, a, res.iterations, res.converged, res.residual_rmse, time.perf_counter() - t0, _peak_rss_mb()
+
+
+def choose_scan_alpha(scan_path, recon_path, options: dict, device: str, coherence) -> tuple[complex, str]:
+    """alpha="discrepancy" for a scan: Im(alpha) by the discrepancy principle
+    (:func:`pwf_dask.solver.discrepancy_alpha`) on one projection, position 0 at the middle
+    angle, used for every projection. Returns (alpha, the rungs tried as JSON). A store that
+    already chose keeps its choice, so a resumed run does not probe again."""
+    import zarr
+
+    if Path(recon_path).exists():
+        try:
+            attrs = zarr.open_group(str(recon_path), mode="r", use_consolidated=False).attrs
+        except Exception:  # not a store: create_reconstruction says so in one line
+            attrs = {}
+        if attrs.get("alpha_rule") == "discrepancy":
+            return complex(str(attrs["alpha"]).replace(" ", "")), str(attrs["alpha_trials"])
+    n_angles = zarr.open_group(str(scan_path), mode="r", use_consolidated=False)["projections"].shape[1]
+    item = (0, n_angles // 2)
+    res = _retrieve_item(item, scan_path, recon_path, {**options, "alpha": "discrepancy"}, device, None, coherence)
+    print(f"alpha: {res.parameters['alpha']} by the discrepancy principle on projection {item}", file=sys.stderr)
+    return complex(res.parameters["alpha"]), json.dumps(res.parameters["alpha_trials"])
 
 
 def _peak_rss_mb() -> float:
@@ -236,7 +265,7 @@ def retrieve_scan(
     angle_chains((), 1, angle_chain)  # a bad length fails here, before anything is written
     # only PWF iterates from a start, and a start the user chose is kept for every projection
     angle_chain = int(angle_chain) if method == "pwf" and "initial" not in options else 1
-    alpha_c = complex(str(alpha).replace(" ", "")) if not isinstance(alpha, complex) else alpha
+    alpha_c = parse_alpha(alpha)
     ds, info = scan_io.open_scan(scan_path)
     if method == "pwf":
         # the scan's recorded geometry unless the caller gave the distance
@@ -248,11 +277,12 @@ def retrieve_scan(
             f"method {method} needs K >= {MIN_POSITIONS[method]} diffuser positions; the scan has {info.n_positions}"
         )
     g, flat, dark, corrected = _scan_frames(scan_path)
-    coherence, fits = [], []
+    coherence, fits, fit_seconds = [], [], []
     for p in range(info.n_positions if method == "pwf" else 0):
         cx, cy = info.coherence_length_x_m, info.coherence_length_y_m
         if cx is None or cy is None:
             ref = _read_reference(g, p, flat, dark, corrected, outlier_sigma)
+            started = time.perf_counter()
             fit = calibration.fit_coherence_lengths(
                 ref,
                 info.pixel_size_m,
@@ -262,6 +292,7 @@ def retrieve_scan(
                 method=options.get("coherence_method", "template"),
             )
             fits.append(fit)
+            fit_seconds.append(time.perf_counter() - started)
             cx = fit.x_m if cx is None else cx
             cy = fit.y_m if cy is None else cy
         coherence.append((float(cx), float(cy)))
@@ -270,6 +301,14 @@ def retrieve_scan(
         options["coherence_includes_pixel_blur"] = fits[0].includes_pixel_blur
     if method != "pwf":
         coherence = [(float("nan"), float("nan"))] * info.n_positions
+    alpha_rule, alpha_trials = "given", "n/a"
+    if alpha_c == "discrepancy" and method == "pwf":
+        probe = dict(method=method, max_iter=max_iter, tol=tol, gamma=gamma, step=step, precision=precision)
+        probe.update(outlier_sigma=outlier_sigma, **options)
+        alpha_c, alpha_trials = choose_scan_alpha(scan_path, recon_path, probe, device, coherence)
+        alpha_rule = "discrepancy"
+    elif alpha_c == "discrepancy":  # the speckle-tracking baselines have no alpha
+        alpha_c, alpha_rule = PAPER_ALPHA, "n/a"
     if method in MULTI_IMAGE:
         from dataclasses import replace
 
@@ -278,6 +317,8 @@ def retrieve_scan(
         "method": method,
         "gamma": float(gamma),
         "alpha": str(alpha_c).strip("()"),
+        "alpha_rule": alpha_rule,
+        "alpha_trials": alpha_trials,
         "step": float(step),
         "tol": float(tol),
         "max_iter": int(max_iter),
@@ -290,7 +331,10 @@ def retrieve_scan(
         "coherence_lengths_per_position_m": json.dumps(coherence) if method == "pwf" else "n/a",
         "coherence_calibrated": info.coherence_length_x_m is None or info.coherence_length_y_m is None,
         "coherence_fits_per_position": json.dumps(
-            [{"method": f.method, "template": f.template, "grain_radius_m": f.grain_radius_m} for f in fits]
+            [
+                {"method": f.method, "template": f.template, "grain_radius_m": f.grain_radius_m, "seconds": round(t, 3)}
+                for f, t in zip(fits, fit_seconds)
+            ]
         )
         if fits
         else "n/a",

@@ -151,15 +151,18 @@ def test_dark_field_of_a_scene_acts_behind_the_sample_only():
 def test_dark_field_fails_pwf_and_not_umpa_k12():
     """PWF's model has no visibility term: the lost speckle contrast behind a scattering
     sample comes back as extra phase (gain well above 1), while UMPA's window correlation
-    with 12 images finds the shifts whatever the contrast (README, Stability map)."""
-    methods = [stability.METHOD_RUNS[0], stability.METHOD_RUNS[3]]
+    with 12 images finds the shifts whatever the contrast (README, Stability map). Measured
+    with the paper's alpha; the default's (Im 0.05) damps the extra phase to an error of 0.22,
+    under the map's threshold."""
+    methods = [stability.METHOD_RUNS[1], stability.METHOD_RUNS[3]]
     rows = stability.stability_map(
         shape=(128, 128), axes={"dark_field_px": [0.0, 2.0]}, methods=methods, progress=False
     )
     got = {(r["value"], r["method"]): r for r in rows}
     threshold = stability.PHASE_ERROR_THRESHOLD
-    assert got[0.0, "PWF K=1"]["phase_error"] < threshold
-    assert got[2.0, "PWF K=1"]["phase_error"] > threshold
-    assert got[2.0, "PWF K=1"]["phase_gain"] > 1.2
+    pwf = "PWF K=1 paper alpha"
+    assert got[0.0, pwf]["phase_error"] < threshold
+    assert got[2.0, pwf]["phase_error"] > threshold
+    assert got[2.0, pwf]["phase_gain"] > 1.2
     assert got[0.0, "UMPA K=12 w5"]["phase_error"] < threshold
     assert got[2.0, "UMPA K=12 w5"]["phase_error"] < threshold

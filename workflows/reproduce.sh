@@ -10,7 +10,8 @@
 #   detector_defects.* ~6 min: PWF with zingers in the images, defect test on and off
 #   authors_release.*  ~10 min: pwf-dask against the authors' released choices, 4 scenes
 #   drift_baselines.*  ~1 min: UMPA and LCS with a drifting diffuser, correction off and on
-#   calibration_dose.* ~5 min: coherence-length calibration and PWF against dose, true vs calibrated
+#   calibration_dose.* ~25 min: coherence calibration (template, Gaussian) and PWF against dose
+#   calibration_sweep.* ~3 min: the template fit against the Gaussian over 80 diffusers and geometries
 #   geometry_sweep.*   ~2 min: PWF on other energies, pixels, coherence lengths and distances
 set -euo pipefail
 PWF=${PWF:-.venv/bin/pwf-dask}
@@ -26,8 +27,9 @@ case "${1:-all}" in
   authors) "$(dirname "$PWF")/python" workflows/authors_release.py --out "$OUT" ;;
   drift) "$(dirname "$PWF")/python" workflows/drift_baselines.py --out "$OUT" ;;
   calibration) "$(dirname "$PWF")/python" workflows/calibration_dose.py --out "$OUT" ;;
+  calibration-sweep) "$(dirname "$PWF")/python" workflows/calibration_sweep.py --out "$OUT" ;;
   geometry) "$(dirname "$PWF")/python" workflows/geometry_sweep.py --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration geometry; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|geometry|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|all]" >&2; exit 2 ;;
 esac
