@@ -1,8 +1,13 @@
 """Calibration from the reference speckle (Methods: IOTF; Diffuser transmission function).
 
-* :func:`coherence_lengths` - x_coh, y_coh by the Siegert relation, Eq. (sigert): 1-D
-  normalised autocorrelations of the reference along each axis, averaged over the other,
-  fitted with the Gaussian 1 + exp(-pi dx^2 / x_coh^2).
+* :func:`fit_coherence_lengths` (and its pair-returning :func:`coherence_lengths`) - x_coh,
+  y_coh of the IOTF, Eq. (IOTF). By default the reference's spectrum is fitted as simulated
+  coherent sandpaper speckle at the scan's geometry (:mod:`pwf_dask.diffusers`) times the
+  Gaussian IOTF, the template of least chi^2 winning (``method="template"``); the paper's
+  Siegert fit, Eq. (sigert), the Gaussian alone, is ``method="gaussian"``
+  (docs/methods.md, "Coherence calibration").
+* :func:`photon_noise_pct` - the sample image's photon noise from its white spectral floor
+  (the level of ``alpha="discrepancy"``).
 * :func:`diffuser_transmission` - t_r: Wiener deconvolution of the reference with the IOTF,
   negatives clipped, square root, zero phase, back-propagation over L2 (the paper's
   estimate, ``diffuser_model="zero-phase"``); or, by default, a single-material phase screen

@@ -320,10 +320,12 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
     from .diffusers import DEFAULT_GRIT, FEPA_P_GRIT_DIAMETER_M, GRAIN_SHAPES
     from .simulation import DEFAULT_PRESET, PRESETS
 
     p = argparse.ArgumentParser(prog="pwf-dask", description=__doc__.splitlines()[0])
+    p.add_argument("--version", action="version", version=f"pwf-dask {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     s = sub.add_parser("simulate", help="simulate a scan of a 3-D phantom into a Zarr store")
     s.add_argument("out")

@@ -325,9 +325,12 @@ def create_scan(
     flat_dark: bool = False,
     x_m=None,
 ):
-    """An empty scan store (CONTRACT §1), one chunk per angle and whole frames; returns the group."""
+    """An empty scan store (CONTRACT §1), one chunk per angle and whole frames; returns the group.
+    Never over an existing path: a store or a folder of the user's files is not ours to clear."""
     import zarr
 
+    if Path(path).exists():
+        raise ValueError(f"{path} already exists; a new scan is written to a new path and never over one")
     ny, nx = shape
     nang = len(angles_deg)
     g = zarr.open_group(str(path), mode="w")
