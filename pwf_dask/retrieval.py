@@ -286,6 +286,20 @@ DRIFT_MIN_PX = 0.05
 DRIFT_MARGIN_PX = 2
 
 
+def check_solver_options(max_iter, tol, gamma, step, phase_scale=1.0) -> None:
+    """Algorithm S1's numbers, each in its range, refused in one line naming the option
+    (issue #28: ``--max-iter -5`` crashed deep in the solver, ``--tol -1`` never stopped)."""
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+        raise ValueError(f"max_iter must be a whole number >= 1, got {max_iter!r}")
+    checks = (("tol", tol, 0.0, True), ("gamma", gamma, 0.0, True), ("step", step, 0.0, False))
+    for name, value, low, inclusive in checks:
+        v = float(value)
+        if not math.isfinite(v) or v < low or (v == low and not inclusive):
+            raise ValueError(f"{name} must be {'>=' if inclusive else '>'} {low:g} and finite, got {value!r}")
+    if phase_scale != "auto" and not (math.isfinite(float(phase_scale)) and float(phase_scale) > 0):
+        raise ValueError(f"phase_scale must be 'auto' or a number > 0, got {phase_scale!r}")
+
+
 def check_diffuser_upstream(diffuser_upstream_m: float, sample_diffuser_distance_m: float) -> float:
     """A diffuser upstream of the sample: >= 0 m, and only where the scan records L1 = 0."""
     d = float(diffuser_upstream_m)
@@ -474,6 +488,7 @@ def retrieve_projection(
             f"got {sample_diffuser_distance_m}, {diffuser_detector_distance_m}"
         )
     check_diffuser_upstream(diffuser_upstream_m, sample_diffuser_distance_m)
+    check_solver_options(max_iter, tol, gamma, step, phase_scale)
     alpha = parse_alpha(alpha)
     if isinstance(initial, str) and initial not in ("zero", "umpa"):
         raise ValueError(f"unknown initial {initial!r}: choose 'zero', 'umpa' or pass psi")

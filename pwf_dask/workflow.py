@@ -23,7 +23,7 @@ from .backend import resolve_device, to_numpy
 from .cluster import Runner, worker_fft_threads
 from .detector import DEFAULT_OUTLIER_SIGMA, check_threshold, repair_outliers
 from .optics import wavelength_m
-from .retrieval import METHODS, check_diffuser_drift, check_diffuser_upstream, parse_alpha
+from .retrieval import METHODS, check_diffuser_drift, check_diffuser_upstream, check_solver_options, parse_alpha
 from .solver import DEFAULT_ALPHA, PAPER_ALPHA, PAPER_TOL
 from .tracking import MIN_POSITIONS
 
@@ -266,6 +266,7 @@ def retrieve_scan(
     # only PWF iterates from a start, and a start the user chose is kept for every projection
     angle_chain = int(angle_chain) if method == "pwf" and "initial" not in options else 1
     alpha_c = parse_alpha(alpha)
+    check_solver_options(max_iter, tol, gamma, step, options.get("phase_scale", 1.0))
     ds, info = scan_io.open_scan(scan_path)
     if method == "pwf":
         # the scan's recorded geometry unless the caller gave the distance

@@ -22,3 +22,28 @@ def test_simulate_never_writes_over_an_existing_path(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "already exists" in err and len(err.splitlines()) == 1
     assert (folder / "thesis.tex").read_text() == "years of work"
+
+
+@pytest.mark.parametrize(
+    "option",
+    [
+        ["--max-iter", "-5"],
+        ["--max-iter", "0"],
+        ["--tol", "-1"],
+        ["--gamma", "-1"],
+        ["--phase-scale", "0"],
+        ["--alpha", "foo"],
+    ],
+)
+def test_bad_solver_option_is_refused_before_any_store_is_written(tmp_path, capsys, option):
+    """Issue #28: each refused in one line naming the option; no reconstruction store is left
+    behind to block the valid re-run."""
+    scan = tmp_path / "scan.zarr"
+    assert cli.main(["simulate", str(scan), "--preset", "demo", "--shape", "32", "32", "--angles", "2"]) == 0
+    capsys.readouterr()
+    recon = tmp_path / "recon.zarr"
+    assert cli.main(["retrieve", str(scan), str(recon), *option]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    name = option[0].lstrip("-").replace("-", "_")
+    assert len(err) == 1 and name in err[0], err
+    assert not recon.exists()
