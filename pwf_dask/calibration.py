@@ -379,24 +379,10 @@ def fit_coherence_lengths(
     )
 
 
-def coherence_lengths(
-    reference,
-    pixel_size_m: float,
-    *,
-    energy_eV: float | None = None,
-    diffuser_detector_distance_m: float | None = None,
-    diffuser_material: str = "silicon carbide",
-    method: str = "template",
-) -> tuple[float, float]:
-    """(x_coh, y_coh) in metres from the reference speckle: :func:`fit_coherence_lengths`."""
-    fit = fit_coherence_lengths(
-        reference,
-        pixel_size_m,
-        energy_eV=energy_eV,
-        diffuser_detector_distance_m=diffuser_detector_distance_m,
-        diffuser_material=diffuser_material,
-        method=method,
-    )
+def coherence_lengths(reference, pixel_size_m: float, **options) -> tuple[float, float]:
+    """(x_coh, y_coh) in metres from the reference speckle: :func:`fit_coherence_lengths`
+    with the same keyword options, its lengths alone."""
+    fit = fit_coherence_lengths(reference, pixel_size_m, **options)
     return fit.x_m, fit.y_m
 
 
