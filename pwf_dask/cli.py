@@ -6,7 +6,9 @@ Commands of CONTRACT §3: simulate, retrieve, tomo, fsc, run, demo; plus ``inges
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -204,6 +206,11 @@ def _run(args) -> int:
         **_retrieval_kwargs(args),
     )
     f = r["fsc"]
+    if f is None:
+        print(
+            f"reconstruction {args.recon}: {r['retrieve']['computed']} projections retrieved (one angle: no tomogram)"
+        )
+        return 0
     print(
         f"reconstruction {args.recon}: {r['retrieve']['computed']} projections retrieved; "
         f"FSC delta {f['delta'] * 1e6:.2f} um, beta {f['beta'] * 1e6:.2f} um ({f['split']}, 1/4)"
@@ -478,6 +485,21 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _interrupted_message(args) -> str:
+    """What Ctrl-C leaves: the projections the reconstruction store holds, and how to go on."""
+    recon = getattr(args, "recon", None)
+    saved = ""
+    if recon is not None and args.command in ("retrieve", "run"):
+        try:
+            import zarr
+
+            done = zarr.open_group(str(recon), mode="r", use_consolidated=False)["iterations"][...] >= 0
+            saved = f": {int(done.sum())} of {done.size} projections saved"
+        except Exception:  # noqa: BLE001 - interrupted before the store existed: nothing saved
+            saved = ": no projection saved yet"
+    return f"pwf-dask {args.command}: interrupted{saved}; run the same command to resume"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -485,6 +507,15 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError, RuntimeError) as exc:
         print(f"pwf-dask {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(_interrupted_message(args), file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        if threading.active_count() > 1:
+            # the scheduler's worker threads would finish their chains first (~15 s); every
+            # projection is marked done only after its arrays are written, so leaving now
+            # loses at most the projections in flight
+            os._exit(130)
+        return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

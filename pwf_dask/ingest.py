@@ -265,8 +265,8 @@ def ingest_scan(
         for s in sources:
             if s.frame_shape != shape:
                 raise ScanError(f"{s.what}: frames of {s.spec} are {s.frame_shape}, projections are {shape}")
-        if n_ang < 2:
-            raise ScanError(f"projections: {n_ang} frame(s), a tomogram needs >= 2 angles")
+        if n_ang < 1:
+            raise ScanError("projections: no frames")
         angles_deg = read_angles_deg(angles, n_ang, angles_range_deg, angles_unit)
         integer = all(s.dtype == np.uint16 for s in sources) and not flat_dark_corrected
         dtype = np.uint16 if integer else np.float32

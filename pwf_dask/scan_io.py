@@ -133,8 +133,8 @@ def open_scan(path: str | Path, check_values: bool = True):
     angles = np.asarray(ds["angle"].values, dtype=np.float64)
     if not np.all(np.isfinite(angles)):
         raise ScanError(f"{path}: angle coordinate has non-finite values")
-    if nang < 2 or min(ny, nx) < 16:
-        raise ScanError(f"{path}: projections {ds['projections'].shape} too small (need >= 2 angles, 16 x 16 px)")
+    if nang < 1 or min(ny, nx) < 16:
+        raise ScanError(f"{path}: projections {ds['projections'].shape} too small (need >= 1 angle, 16 x 16 px)")
     attrs = dict(ds.attrs)
     vals = {name: _attr_float(attrs, name, path) for name in REQUIRED_ATTRS}
     if vals["energy_eV"] <= 0:
@@ -223,10 +223,47 @@ def row_block(ny: int, nx: int) -> int:
     return int(min(ny, max(4, 65536 // max(nx, 1))))
 
 
+#: CF-style ``units`` and ``long_name`` of every coordinate and variable the stores hold
+#: (``"1"``: dimensionless; counts carry the detector's "count"), so that xarray's plots and
+#: other tools label their axes. ``tomo_done`` is the resume bookkeeping of the tomography stage.
+VARIABLE_ATTRS: dict[str, tuple[str, str]] = {
+    "position": ("1", "diffuser position index"),
+    "angle": ("degree", "rotation angle"),
+    "y": ("m", "detector row coordinate (rotation axis direction)"),
+    "x": ("m", "detector column coordinate"),
+    "u": ("m", "sample coordinate across the beam at angle 0"),
+    "v": ("m", "sample coordinate along the beam at angle 0"),
+    "projections": ("count", "sample speckle images"),
+    "reference": ("count", "reference speckle images without the sample"),
+    "flat": ("count", "flat field without diffuser or sample"),
+    "dark": ("count", "dark field"),
+    "phase": ("rad", "projected phase (Im psi)"),
+    "attenuation": ("1", "projected amplitude attenuation (-Re psi)"),
+    "iterations": ("1", "PWF iterations"),
+    "converged": ("1", "stop rule met before max_iter"),
+    "residual_rmse": ("percent", "RMS data residual over the mean reference"),
+    "outlier_pixels": ("1", "pixels repaired as outliers"),
+    "diffuser_drift_y_px": ("pixel", "measured speckle drift against the reference, rows"),
+    "diffuser_drift_x_px": ("pixel", "measured speckle drift against the reference, columns"),
+    "delta": ("1", "refractive index decrement delta"),
+    "beta": ("1", "absorption index beta"),
+    "tomo_done": ("1", "bookkeeping: 1 where this row block's slices are reconstructed (resume)"),
+    "split": ("1", "FSC split index"),
+    "frequency": ("1/m", "spatial frequency"),
+    "fsc_delta": ("1", "Fourier shell correlation of delta"),
+    "fsc_beta": ("1", "Fourier shell correlation of beta"),
+    "fsc_delta_truth": ("1", "Fourier shell correlation of delta with the ground truth"),
+    "fsc_beta_truth": ("1", "Fourier shell correlation of beta with the ground truth"),
+}
+
+
 def _create(group, name, shape, chunks, dims, dtype, fill, data=None):
     arr = group.create_array(
         name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill, dimension_names=dims, overwrite=True
     )
+    if name in VARIABLE_ATTRS:
+        units, long_name = VARIABLE_ATTRS[name]
+        arr.attrs.update({"units": units, "long_name": long_name})
     if data is not None:
         arr[...] = data
     return arr

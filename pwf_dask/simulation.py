@@ -80,6 +80,33 @@ class Phantom:
         return d_int, b_int
 
 
+@dataclass(frozen=True)
+class Rods:
+    """Parallel vertical rods of one material (axes along y at (u, v)), nothing inside them.
+
+    The regime of issue #27's real scan: mm-wide PMMA rods across a wide strip, one of them
+    cut by the frame's edge. Projections only (:meth:`line_integrals`); no volume truth.
+    """
+
+    u_m: tuple[float, ...]
+    radii_m: tuple[float, ...]
+    v_m: tuple[float, ...] | None = None
+    material: str = "PMMA"
+    spheres: tuple[Sphere, ...] = ()  # none: the simulator's phantom protocol
+
+    def line_integrals(self, angle_deg: float, x_m: np.ndarray, y_m: np.ndarray, energy_eV: float):
+        """(integral of delta, integral of beta) in metres on the (y, x) grid: exact chords."""
+        th = np.deg2rad(angle_deg)
+        d, b = delta_beta(self.material, energy_eV)
+        vs = self.v_m or (0.0,) * len(self.u_m)
+        chord = np.zeros(x_m.size)
+        for u, v, r in zip(self.u_m, vs, self.radii_m, strict=True):
+            xc = u * np.cos(th) + v * np.sin(th)
+            chord += 2.0 * np.sqrt(np.clip(r * r - (x_m - xc) ** 2, 0, None))
+        chord = np.broadcast_to(chord[None, :], (y_m.size, x_m.size))
+        return d * chord, b * chord
+
+
 def default_phantom(
     field_of_view_m: float,
     rng: np.random.Generator | None = None,

@@ -68,9 +68,11 @@ DISCREPANCY_TARGET = 1.0
 #: was caused by a mode too stiff for eta (see :func:`pwf`, "Step"): eta is halved.
 STIFF_COSINE = -0.5
 
-#: Hessian-vector products in :func:`largest_curvature`, and the rms of their probe step
+#: Hessian-vector products in :func:`largest_curvature`, the rms of their probe step, and
+#: the most any pixel of the probe may move psi (exp(psi) linear to ~2.5 %)
 CURVATURE_ITERATIONS = 8
 CURVATURE_PROBE_RMS = 1e-2
+CURVATURE_PROBE_MAX = 5e-2
 
 #: Momentum restart rules of :func:`pwf`; ``"none"`` is plain Algorithm S1.
 RESTARTS = ("gradient", "function", "none")
@@ -537,7 +539,7 @@ def largest_curvature(psi, y, model: PWFModel, direction=None, iterations: int =
     The iteration matrix of psi <- psi - eta M grad J is I - eta M H: plain steps descend for
     eta L < 2, Nesterov's iteration only for eta L < 4/3 as its momentum factor nears 1, and
     1/L is the textbook step. Each product M H v is a finite difference of the direction
-    along v (rms 1e-2, where exp(psi) is still linear to 1 %), one evaluation of
+    along v (rms 1e-2 and at most 5e-2 in any pixel, where exp(psi) is still linear to a few %), one evaluation of
     :func:`objective_and_direction`. Power iteration approaches L from below (measured on a
     256 x 256 frame: 3.08, 3.29, 3.45 after 5, 8, 12 products), so 1/L from 8 products keeps
     eta L near 1.1, inside 4/3. The start vector is seeded: the step is reproducible.
@@ -554,9 +556,13 @@ def largest_curvature(psi, y, model: PWFModel, direction=None, iterations: int =
     rng = np.random.default_rng(0)
     v = xp.asarray(rng.standard_normal(model.shape) + 1j * rng.standard_normal(model.shape)).astype(model.cdtype)
     v /= math.sqrt(inner(v, v).real / v.size)
-    h = CURVATURE_PROBE_RMS
     curvature = 0.0
     for _ in range(iterations):
+        # the iterate localises on the stiffest pixels (bright spots of |t|^2); an rms step
+        # then moves those pixels by units, exp(psi) is far from linear, and the "curvature"
+        # explodes (issue #27's 430 x 700 strip: 2.4 -> 542 -> 8.8e7, a step of 1e-8 that
+        # never moved the phase): the probe is capped per pixel too
+        h = min(CURVATURE_PROBE_RMS, CURVATURE_PROBE_MAX / max(float(xp.abs(v).max()), 1e-30))
         with np.errstate(over="ignore", invalid="ignore"):
             _, d, _ = objective_and_direction(psi + h * v, y, model)
         d -= direction
@@ -624,6 +630,44 @@ def _stationary(history: list[float], jtol: float, window: int) -> bool:
     return before - now < jtol * abs(before)
 
 
+#: Scales the low-band stop test watches (:func:`_low_band_settled`): phase structure wider
+#: than this many pixels, the wide smooth objects whose phase the data fix only weakly
+LOW_BAND_PX = 64.0
+
+
+def low_band_filter(shape: tuple[int, int], xp: ModuleType = np, dtype=np.float32, width_px: float = LOW_BAND_PX):
+    """Gaussian low pass exp(-2 pi^2 sigma^2 q^2) with sigma = ``width_px`` / 4 (half spectrum):
+    keeps structure wider than ``width_px``, whatever the frame size."""
+    v, u = optics.frequency_grid(shape, 1.0, half=True)
+    sigma = width_px / 4.0
+    return xp.asarray(np.exp(-2.0 * np.pi**2 * sigma**2 * (u * u + v * v)).astype(dtype))
+
+
+def _low_band_settled(snapshots: list, rtol: float, xp) -> bool:
+    """The low band of the phase (:func:`low_band_filter`, one snapshot per stop window) has
+    stopped moving: its change over the last window, extrapolated at the rate of the two
+    windows before (a geometric tail), is below ``rtol`` times its rms.
+
+    :func:`_stationary` alone lets a run stop while J no longer moves but the phase of wide
+    objects still does (issue #27: a 430 x 700 crop of a real scan called converged with 63 %
+    of the rod's phase). A change that does not shrink from one window to the next is not
+    settled unless it is below ``rtol`` / 100 of the rms (rounding)."""
+    if rtol <= 0:
+        return True
+    if len(snapshots) < 3:
+        return False
+    a, b, c = snapshots[-3:]
+    scale = max(float(xp.sqrt(xp.mean(c * c))), 1e-12)
+    d1 = float(xp.sqrt(xp.mean((b - a) ** 2)))
+    d2 = float(xp.sqrt(xp.mean((c - b) ** 2)))
+    if d2 < 0.01 * rtol * scale:
+        return True
+    if not d2 < d1:
+        return False
+    rho = d2 / d1
+    return d2 * rho / (1.0 - rho) < rtol * scale
+
+
 def pwf(
     y,
     model: PWFModel,
@@ -636,6 +680,7 @@ def pwf(
     rtol: float = 1e-3,
     jtol: float = 1e-5,
     window: int = 20,
+    low_band_px: float = LOW_BAND_PX,
     psi0=None,
     step_search: bool = True,
     restart: str = "gradient",
@@ -655,7 +700,9 @@ def pwf(
     linear rate rho from the mean rms steps of two successive ``window``-iteration windows of
     the current momentum run (:func:`_settled`), below ``rtol`` times rms(psi) (``rtol`` = 0
     disables this test), or J stationary: its best value lowered by less than ``jtol``
-    (relative) from one window to the next (:func:`_stationary`; ``jtol`` = 0 disables it).
+    (relative) from one window to the next (:func:`_stationary`; ``jtol`` = 0 disables it)
+    while the phase's structure wider than ``low_band_px`` has settled as well
+    (:func:`_low_band_settled`, ``low_band_px`` = 0 leaves it out).
 
     Step: ``step`` is eta of Algorithm S1; with ``step_search`` it is in units of 1/L, L the
     largest curvature in the metric at psi_0 (:func:`largest_curvature`, power iteration), so
@@ -705,6 +752,9 @@ def pwf(
     stall_limit = 5 * window
     halved = False  # eta was halved at the last momentum restart
     recent_steps: list = []  # the last two accepted steps psi_k - psi_{k-1}
+    low_pass = low_band_filter(model.shape, xp, model.rdtype, low_band_px) if low_band_px > 0 else None
+    low_band: list = []  # low-passed phase, one snapshot per ``window`` accepted iterations
+    accepted = 0
 
     def restart_momentum():
         """Count a momentum restart; under the gradient rule, halve eta when a stiff mode
@@ -785,13 +835,22 @@ def pwf(
                 stalled += 1
             last = (psi, j, d, ev)
             history.append(j)
+            accepted += 1
+            if low_pass is not None and accepted % window == 0:
+                low_band = [*low_band[-2:], _filter_real(xp.ascontiguousarray(psi.imag), low_pass, model.fft)]
             if callback is not None:
                 callback(k, j, psi)
             if (
                 tol > 0
                 and streak >= patience
                 and k >= min_iter
-                and (_settled(steps, psi, rtol, window, xp) or _stationary(history, jtol, window))
+                and (
+                    _settled(steps, psi, rtol, window, xp)
+                    or (
+                        _stationary(history, jtol, window)
+                        and (low_pass is None or _low_band_settled(low_band, rtol, xp))
+                    )
+                )
             ):
                 converged = True
                 reason = "converged"

@@ -470,6 +470,8 @@ def tomo_scan(
             f"{path}: retrieval incomplete ({missing} projections missing); rerun 'pwf-dask retrieve'"
         )
     npos, nang, ny, nx = g["phase"].shape
+    if nang < 2:
+        raise scan_io.ScanError(f"{path}: one angle; tomography needs >= 2 (its phase and attenuation are complete)")
     rb = g["phase"].chunks[2]
     estimated = center_m is None
     if estimated:
@@ -543,6 +545,8 @@ def fsc_scan(recon_path, *, split: str = "auto", criterion: str = "1/4", pairs: 
 
     path = str(recon_path)
     g = zarr.open_group(path, mode="r+", use_consolidated=False)
+    if "phase" in g and g["phase"].shape[1] < 2:
+        raise scan_io.ScanError(f"{path}: one angle; FSC needs tomograms, from >= 2 angles")
     if "delta" not in g or int(g["tomo_done"][...].min()) == 0:
         raise scan_io.ScanError(f"{path}: tomograms incomplete; run 'pwf-dask tomo' first")
     if criterion not in fsc.CRITERIA:
@@ -639,9 +643,12 @@ def run_scan(
     center_m: float | None = None,
     **retrieve_options,
 ) -> dict:
-    """All stages on one scheduler connection: retrieve, tomo, fsc."""
+    """All stages on one scheduler connection: retrieve, tomo, fsc. A single-angle scan (a
+    radiograph) stops after retrieval: ``tomo`` and ``fsc`` are then None."""
     with Runner(scheduler) as runner:
         r = retrieve_scan(scan_path, recon_path, scheduler=scheduler, device=device, runner=runner, **retrieve_options)
+        if scan_io.open_scan(scan_path, check_values=False)[1].angles_deg.size < 2:
+            return {"retrieve": r, "tomo": None, "fsc": None}
         t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner)
     f = fsc_scan(recon_path, split=split)
     return {"retrieve": r, "tomo": t, "fsc": f}

@@ -143,6 +143,60 @@ def test_curvature_estimate_approaches_the_largest_eigenvalue_from_below(rng):
     assert l8 == solver.largest_curvature(psi, y, model)  # seeded: the step is reproducible
 
 
+def test_curvature_probe_stays_linear_on_a_bright_spot(rng, monkeypatch):
+    """The power iterate localises on the brightest pixel of |t|^2 (a focal spot of the
+    diffuser's field at L1 = 0); a probe of rms 1e-2 then moves that pixel by units and the
+    finite difference reads 4.3x the curvature (issue #27: a step of 1e-8 on a 430 x 700
+    strip, the phase never moved). The per-pixel cap keeps it within 25 % of the linear value."""
+    n = 48
+    t = np.exp(1j * rng.normal(size=(n, n)) - 0.05 * rng.random((n, n)))
+    t[20, 30] *= 40.0
+    model = solver.build_model(
+        t,
+        frame_shape=(n, n),
+        pixel_size_m=0.65e-6,
+        wavelength=optics.wavelength_m(10_000),
+        sample_diffuser_distance_m=0.0,
+        diffuser_detector_distance_m=0.02,
+        coherence_length_x_m=2e-6,
+        coherence_length_y_m=2.4e-6,
+        precision="double",
+    )
+    y = np.abs(t) ** 2 / np.mean(np.abs(t) ** 2)
+    psi = np.zeros(model.shape, complex)
+    capped = solver.largest_curvature(psi, y, model, iterations=30)
+    monkeypatch.setattr(solver, "CURVATURE_PROBE_MAX", 1e9)
+    uncapped = solver.largest_curvature(psi, y, model, iterations=30)
+    monkeypatch.setattr(solver, "CURVATURE_PROBE_MAX", 1e-6)
+    linear = solver.largest_curvature(psi, y, model, iterations=30)
+    assert 0.9 * linear < capped < 1.25 * linear, (capped, linear)
+    assert uncapped > 3 * linear, (uncapped, linear)
+
+
+def test_low_band_test_waits_for_a_creep_and_accepts_a_geometric_tail():
+    """A low band creeping at a constant rate is not settled (J may no longer move while the
+    phase of wide objects does); a geometric tail whose extrapolated rest is small is."""
+    base = np.ones((8, 8))
+    creep = [base * (1 + 0.01 * k) for k in range(3)]
+    assert not solver._low_band_settled(creep, 1e-3, np)
+    tail = [base * (1 + 1e-3 * (1 - 0.1**k)) for k in range(3)]
+    assert solver._low_band_settled(tail, 1e-3, np)
+    assert solver._low_band_settled([base, base, base], 1e-3, np)
+    assert not solver._low_band_settled([base, base], 1e-3, np)  # too few windows yet
+    assert solver._low_band_settled(creep, 0.0, np)  # rtol = 0 switches it off
+
+
+def test_low_band_filter_keeps_wide_structure_whatever_the_frame():
+    """The same 64 px scale passes the same share on a 128 and on a 1024 px frame."""
+    for n in (128, 1024):
+        w = solver.low_band_filter((n, n), width_px=64.0)
+        v, u = optics.frequency_grid((n, n), 1.0, half=True)
+        q = np.hypot(u, v)
+        assert w[0, 0] == 1.0
+        assert np.all(w[q > 4 / 64] < 1e-5)
+        assert np.all(w[q < 0.25 / 64] > 0.8)
+
+
 def test_curvature_step_does_not_follow_the_beam_level(rng):
     """L is the Gauss-Newton term's, which does not depend on the data: the same for a frame
     10 % darker. The curvature along the first direction, which the former doubling search

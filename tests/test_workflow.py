@@ -425,6 +425,14 @@ def test_demo_small_bead_beta_within_20_percent(demo_recon):
     assert b == pytest.approx(bg, rel=0.2)
 
 
+def test_every_variable_and_coordinate_has_units_and_a_long_name(demo_recon):
+    """CF-style attributes (issue #28): xarray's own plots label their axes in metres."""
+    for name in [*demo_recon.data_vars, *demo_recon.coords]:
+        attrs = demo_recon[name].attrs
+        assert attrs.get("units") and attrs.get("long_name"), name
+    assert demo_recon.u.attrs["units"] == "m" and demo_recon.delta.attrs["long_name"].startswith("refractive")
+
+
 def test_fsc_resolutions_are_physical(demo_recon):
     p = demo_recon.attrs["pixel_size_m"]
     for name in ("fsc_delta", "fsc_beta", "fsc_delta_truth"):

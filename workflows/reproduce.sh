@@ -13,6 +13,7 @@
 #   calibration_dose.* ~25 min: coherence calibration (template, Gaussian) and PWF against dose
 #   calibration_sweep.* ~3 min: the template fit against the Gaussian over 80 diffusers and geometries
 #   geometry_sweep.*   ~2 min: PWF on other energies, pixels, coherence lengths and distances
+#   frame_size.*       ~12 min: phase gain at 256^2-1024^2 and on wide 25 keV strips of PMMA rods
 set -euo pipefail
 PWF=${PWF:-.venv/bin/pwf-dask}
 OUT=${OUT:-workflows/results}
@@ -29,7 +30,8 @@ case "${1:-all}" in
   calibration) "$(dirname "$PWF")/python" workflows/calibration_dose.py --out "$OUT" ;;
   calibration-sweep) "$(dirname "$PWF")/python" workflows/calibration_sweep.py --out "$OUT" ;;
   geometry) "$(dirname "$PWF")/python" workflows/geometry_sweep.py --out "$OUT" ;;
+  frame-size) "$(dirname "$PWF")/python" workflows/frame_size.py --truth-start --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|all]" >&2; exit 2 ;;
 esac
