@@ -633,6 +633,12 @@ def _fsc_truth(g, freq, pix) -> dict:
     return out
 
 
+def _n_angles(recon_path) -> int:
+    import zarr
+
+    return int(zarr.open_group(str(recon_path), mode="r", use_consolidated=False)["phase"].shape[1])
+
+
 def run_scan(
     scan_path,
     recon_path,
@@ -647,7 +653,7 @@ def run_scan(
     radiograph) stops after retrieval: ``tomo`` and ``fsc`` are then None."""
     with Runner(scheduler) as runner:
         r = retrieve_scan(scan_path, recon_path, scheduler=scheduler, device=device, runner=runner, **retrieve_options)
-        if scan_io.open_scan(scan_path, check_values=False)[1].angles_deg.size < 2:
+        if _n_angles(recon_path) < 2:
             return {"retrieve": r, "tomo": None, "fsc": None}
         t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner)
     f = fsc_scan(recon_path, split=split)
