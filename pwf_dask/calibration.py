@@ -15,7 +15,7 @@
   :func:`single_material_diffuser`).
 * :func:`speckle_drift_px`, :func:`shift_transmission`, :func:`unseen_by_reference` - not in
   the paper: the diffuser's drift between the reference and a sample frame, measured and
-  followed (README, "Diffuser drift").
+  followed (docs/validation.md, "Diffuser drift").
 """
 
 from __future__ import annotations
@@ -640,7 +640,7 @@ def single_material_diffuser(
     then puts the missing evolution into extra curvature (+25 % bead phase contrast on the
     test scene). A diffuser is one material (abrasive grains; kappa from xraydb), which makes
     its phase retrievable from one image; at kappa = 0 the slow part of theta is not
-    (README, Numerical choices). Returns the estimate with its fit residuals.
+    (docs/methods.md). Returns the estimate with its fit residuals.
     """
     xp = get_array_module(reference)
     fft = fft or FFT.for_module(xp)
@@ -717,7 +717,7 @@ def speckle_drift_px(sample, reference, *, fft: FFT | None = None) -> tuple[floa
     Not in the paper, whose diffuser holds still: on a beamline it drifts between the
     reference and the sample frames (thermal, stage settling), and PWF fits t_r P1{x_r} to the
     speckle grain by grain: half a pixel of drift multiplied the phase error by 3.5 and
-    1.5 pixels ruined it (README, "Diffuser drift"). Cross-correlation of the mean-normalised,
+    1.5 pixels ruined it (docs/validation.md, "Diffuser drift"). Cross-correlation of the mean-normalised,
     Tukey-tapered frames divided by the tapers' own correlation (the overlap of the two
     windows falls with the shift and would pull the peak towards zero), refined by
     upsampled DFTs around the integer peak (1/10, then 1/100 px). Not whitened: phase

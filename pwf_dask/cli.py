@@ -1,6 +1,7 @@
 """Command line: parses and calls; every computation lives in the library modules.
 
-Commands of CONTRACT §3: simulate, retrieve, tomo, fsc, run, demo; plus ``ingest`` and ``bench``.
+Commands of CONTRACT §3: simulate, retrieve, tomo, fsc, run, demo; plus ``ingest``, ``estimate``, ``verify``,
+``preview``, ``export`` and ``bench``.
 """
 
 from __future__ import annotations
@@ -10,16 +11,13 @@ import os
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 
 
 def _scan_demo(args) -> int:
-    import numpy as np
-    import xarray as xr
-
     from . import scan_io
-    from .plots import fsc_plot, projection_panels, tomogram_panels
-    from .retrieval import RetrievalResult
+    from .plots import preview
     from .simulation import simulate_scan
     from .workflow import run_scan
 
@@ -29,49 +27,27 @@ def _scan_demo(args) -> int:
     t0 = time.perf_counter()
     if not scan.exists():
         simulate_scan(scan, preset="demo", seed=args.seed, rotation_axis_offset_px=2.5)
-    # small frames converge slowly in the phase (README, Where PWF fails): a phase-block metric
-    # scale of 4 reaches the converged solution within the demo's 300 iterations
-    summary = run_scan(
-        scan, recon, scheduler=args.scheduler, device=args.device, max_iter=args.max_iter, phase_scale=args.phase_scale
-    )
-    ds = xr.open_zarr(recon)
+    with _runner(args) as runner:
+        summary = run_scan(
+            scan,
+            recon,
+            scheduler=args.scheduler,
+            device=args.device,
+            runner=runner,
+            max_iter=args.max_iter,
+            phase_scale=args.phase_scale,
+        )
+    figs = preview(recon, out)
     sds, _ = scan_io.open_scan(scan, check_values=False)
-    flat = sds["flat"].values if "flat" in sds else None
-    dark = sds["dark"].values if "dark" in sds else None
-    corrected = bool(sds.attrs.get("flat_dark_corrected", False))
-    sample = scan_io.correct(sds["projections"][0, 0].values, flat, dark, corrected)
-    reference = scan_io.correct(sds["reference"][0].values, flat, dark, corrected)
-    res = RetrievalResult(
-        phase=ds["phase"][0, 0].values,
-        attenuation=ds["attenuation"][0, 0].values,
-        iterations=int(ds["iterations"][0, 0]),
-        converged=bool(ds["converged"][0, 0]),
-        residual=np.zeros_like(sample),
-        residual_rmse=float(ds["residual_rmse"][0, 0]),
-        loss_history=[],
-        coherence_length_x_m=float(ds.attrs["coherence_length_x_m"]),
-        coherence_length_y_m=float(ds.attrs["coherence_length_y_m"]),
-    )
-    figs = [
-        projection_panels(
-            out / "projection.png",
-            sample=sample,
-            reference=reference,
-            result=res,
-            pixel_size_m=float(ds.attrs["pixel_size_m"]),
-        ),
-        tomogram_panels(out / "tomograms.png", ds),
-        fsc_plot(out / "fsc.png", ds),
-    ]
     f = summary["fsc"]
     print(f"done in {time.perf_counter() - t0:.0f} s")
     print(
-        f"FSC ({f['split']}, 1/4): delta {f['delta'] * 1e6:.2f} um, beta {f['beta'] * 1e6:.2f} um"
-        + (f"; against the truth (1/2): delta {f['delta_truth'] * 1e6:.2f} um" if "delta_truth" in f else "")
+        f"FSC ({f['split']}, 1/4): delta {f['delta'] * 1e6:.2f} µm, beta {f['beta'] * 1e6:.2f} µm"
+        + (f"; against the truth (1/2): delta {f['delta_truth'] * 1e6:.2f} µm" if "delta_truth" in f else "")
     )
     print(
-        f"rotation centre {summary['tomo']['rotation_center_m'] * 1e6:+.2f} um "
-        f"(simulated {float(sds.attrs['simulation_rotation_axis_offset_m']) * 1e6:+.2f} um)"
+        f"rotation centre {summary['tomo']['rotation_center_m'] * 1e6:+.2f} µm "
+        f"(simulated {float(sds.attrs['simulation_rotation_axis_offset_m']) * 1e6:+.2f} µm)"
     )
     print(f"scan: {scan}\nreconstruction: {recon}\nfigures: " + ", ".join(str(p) for p in figs))
     return 0
@@ -135,8 +111,9 @@ def _ingest(args) -> int:
     return 0
 
 
-def _retrieval_kwargs(args) -> dict:
-    """The retrieval options shared by ``retrieve`` and ``run``."""
+def retrieval_kwargs(args) -> dict:
+    """The retrieval options shared by ``retrieve``, ``run`` and deploy/jobqueue.py, as keyword
+    arguments of :func:`pwf_dask.workflow.run_scan`."""
     return dict(
         method=args.method,
         max_iter=args.max_iter,
@@ -161,13 +138,10 @@ def _retrieval_kwargs(args) -> dict:
 def _retrieve(args) -> int:
     from .workflow import retrieve_scan
 
-    r = retrieve_scan(
-        args.scan,
-        args.recon,
-        scheduler=args.scheduler,
-        device=args.device,
-        **_retrieval_kwargs(args),
-    )
+    with _runner(args) as runner:
+        r = retrieve_scan(
+            args.scan, args.recon, scheduler=args.scheduler, device=args.device, runner=runner, **retrieval_kwargs(args)
+        )
     print(f"retrieved {r['computed']} projections in {r['wall_s']:.1f} s into {args.recon}")
     return 0
 
@@ -176,8 +150,9 @@ def _tomo(args) -> int:
     from .workflow import tomo_scan
 
     center = None if args.center_um is None else args.center_um * 1e-6
-    r = tomo_scan(args.recon, scheduler=args.scheduler, device=args.device, center_m=center)
-    print(f"tomograms delta, beta written to {args.recon} (rotation centre {r['rotation_center_m'] * 1e6:+.2f} um)")
+    with _runner(args) as runner:
+        r = tomo_scan(args.recon, scheduler=args.scheduler, device=args.device, center_m=center, runner=runner)
+    print(f"tomograms delta, beta written to {args.recon} (rotation centre {r['rotation_center_m'] * 1e6:+.2f} µm)")
     return 0
 
 
@@ -185,36 +160,81 @@ def _fsc(args) -> int:
     from .workflow import fsc_scan
 
     r = fsc_scan(args.recon, split=args.split, criterion=args.criterion)
-    print(f"FSC ({r['split']}, {args.criterion}): delta {r['delta'] * 1e6:.2f} um, beta {r['beta'] * 1e6:.2f} um")
+    print(f"FSC ({r['split']}, {args.criterion}): delta {r['delta'] * 1e6:.2f} µm, beta {r['beta'] * 1e6:.2f} µm")
     for k in ("delta_truth", "beta_truth"):
         if k in r:
-            print(f"FSC against the simulated truth (1/2): {k.split('_')[0]} {r[k] * 1e6:.2f} um")
+            print(f"FSC against the simulated truth (1/2): {k.split('_')[0]} {r[k] * 1e6:.2f} µm")
     return 0
 
 
 def _run(args) -> int:
+    from .plots import preview
     from .workflow import run_scan
 
     center = None if args.center_um is None else args.center_um * 1e-6
-    r = run_scan(
-        args.scan,
-        args.recon,
-        scheduler=args.scheduler,
-        device=args.device,
-        split=args.split,
-        center_m=center,
-        **_retrieval_kwargs(args),
-    )
+    with _runner(args) as runner:
+        r = run_scan(
+            args.scan,
+            args.recon,
+            scheduler=args.scheduler,
+            device=args.device,
+            split=args.split,
+            center_m=center,
+            runner=runner,
+            **retrieval_kwargs(args),
+        )
     f = r["fsc"]
+    figures = preview(args.recon, args.figures)
     if f is None:
         print(
             f"reconstruction {args.recon}: {r['retrieve']['computed']} projections retrieved (one angle: no tomogram)"
         )
-        return 0
-    print(
-        f"reconstruction {args.recon}: {r['retrieve']['computed']} projections retrieved; "
-        f"FSC delta {f['delta'] * 1e6:.2f} um, beta {f['beta'] * 1e6:.2f} um ({f['split']}, 1/4)"
+    else:
+        print(
+            f"reconstruction {args.recon}: {r['retrieve']['computed']} projections retrieved; "
+            f"FSC delta {f['delta'] * 1e6:.2f} µm, beta {f['beta'] * 1e6:.2f} µm ({f['split']}, 1/4)"
+        )
+    print("figures: " + ", ".join(str(p) for p in figures))
+    return 0
+
+
+def _estimate(args) -> int:
+    from .estimate import estimate_for_scan, format_estimate, machine_memory_mb
+
+    if args.workers < 1 or args.iterations < 1:
+        raise ValueError("--workers and --iterations are whole numbers >= 1")
+    stages, sizes = estimate_for_scan(
+        args.scan, workers=args.workers, iterations=args.iterations, field_upsample=args.field_upsample
     )
+    ny, nx = sizes["shape"]
+    print(f"{args.scan}: {sizes['positions']} position(s) x {sizes['angles']} angles x {ny} x {nx} px")
+    print("\n".join(format_estimate(stages, args.workers, machine_memory_mb())))
+    return 0
+
+
+def _verify(args) -> int:
+    from .integrity import verify_store
+
+    report = verify_store(args.store, repair=args.repair)
+    print("\n".join(report.lines()))
+    if not report.ok and not args.repair:
+        print("run 'pwf-dask verify --repair' and then the same 'pwf-dask run' to recompute what is damaged")
+    return 0 if report.ok else 1
+
+
+def _preview(args) -> int:
+    from .plots import preview
+
+    figures = preview(args.recon, args.dir)
+    print("figures: " + ", ".join(str(p) for p in figures))
+    return 0
+
+
+def _export(args) -> int:
+    from .export import export_tiff
+
+    files = export_tiff(args.recon, args.dir, layout=args.layout)
+    print(f"wrote {len(files)} TIFF file{'s' * (len(files) != 1)} to {args.dir}")
     return 0
 
 
@@ -235,21 +255,52 @@ def _bench(args) -> int:
 
 
 def _compute_options(p: argparse.ArgumentParser) -> None:
+    from .cluster import DEFAULT_DASHBOARD_ADDRESS
+
     p.add_argument(
-        "--scheduler", default="threads", help="threads (default), processes, local, local-cuda, or tcp://HOST:PORT"
+        "--scheduler",
+        default="threads",
+        help="threads (default), processes, local, local-cuda, or tcp://HOST:PORT / tls://HOST:PORT",
     )
     p.add_argument("--device", default="cpu", choices=["cpu", "gpu", "auto"], help="NumPy or CuPy numerics")
+    p.add_argument(
+        "--dashboard-address",
+        default=DEFAULT_DASHBOARD_ADDRESS,
+        metavar="HOST:PORT",
+        help="local, local-cuda: where the dashboard listens (default: this host only, any free port)",
+    )
+    p.add_argument(
+        "--security",
+        metavar="FILE.yaml",
+        help="tls:// schedulers: a YAML of distributed.Security options (tls_ca_file, tls_client_cert, "
+        "tls_client_key; docs/clusters.md)",
+    )
 
 
-def _retrieval_options(p: argparse.ArgumentParser) -> None:
+def _runner(args):
+    """The scheduler connection of a computing command (validated before anything is written)."""
+    from .cluster import Runner
+
+    return Runner(args.scheduler, dashboard_address=args.dashboard_address, security=args.security)
+
+
+def add_retrieval_options(p: argparse.ArgumentParser) -> None:
+    """Every retrieval option of ``retrieve`` and ``run`` (read back by :func:`retrieval_kwargs`)."""
     from .detector import DEFAULT_OUTLIER_SIGMA
     from .solver import DEFAULT_ALPHA, PAPER_TOL
     from .workflow import DEFAULT_ANGLE_CHAIN
 
-    p.add_argument("--method", default="pwf", choices=["pwf", "lcs", "umpa", "gf", "mist"])
-    p.add_argument("--max-iter", type=int, default=2000)
+    p.add_argument(
+        "--method",
+        default="pwf",
+        choices=["pwf", "lcs", "umpa", "gf", "mist"],
+        help="pwf (single shot, the paper's) or a speckle-tracking baseline (K >= 1 positions; docs/validation.md)",
+    )
+    p.add_argument("--max-iter", type=int, default=2000, help="pwf: iterations per projection at most")
     p.add_argument("--tol", type=float, default=PAPER_TOL, help="1 - field correlation of successive iterates")
-    p.add_argument("--gamma", type=float, default=1.0)
+    p.add_argument(
+        "--gamma", type=float, default=1.0, help="width of the regularization window over the STF (0: no window)"
+    )
     p.add_argument(
         "--alpha",
         default=str(DEFAULT_ALPHA).strip("()"),
@@ -326,27 +377,56 @@ def _retrieval_options(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _split_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--split",
+        default="auto",
+        choices=["auto", "positions", "even-odd"],
+        help="FSC halves: diffuser positions (K >= 2), even/odd angles, or auto (positions when K >= 2)",
+    )
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows each option's default, unless it has none or its help already says it."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if action.default in (None, False, argparse.SUPPRESS) or "default" in text:
+            return text
+        return super()._get_help_string(action)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
     from .diffusers import DEFAULT_GRIT, FEPA_P_GRIT_DIAMETER_M, GRAIN_SHAPES
     from .simulation import DEFAULT_PRESET, PRESETS
 
-    p = argparse.ArgumentParser(prog="pwf-dask", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        prog="pwf-dask",
+        description="Single-shot speckle X-ray phase tomography by preconditioned Wirtinger flow.",
+        formatter_class=_HelpFormatter,
+    )
     p.add_argument("--version", action="version", version=f"pwf-dask {__version__}")
-    sub = p.add_subparsers(dest="command", required=True)
-    s = sub.add_parser("simulate", help="simulate a scan of a 3-D phantom into a Zarr store")
-    s.add_argument("out")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def command(name: str, text: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=text, description=text, formatter_class=_HelpFormatter)
+
+    s = command("simulate", "simulate a scan of a 3-D phantom into a Zarr store")
+    s.add_argument("out", help="the new scan store (a path that does not exist yet)")
     s.add_argument(
         "--preset",
         default=DEFAULT_PRESET,
         help=f"one of {', '.join(PRESETS)}: beads (the default: paper-sized glass beads, 160 x 320 px, "
         "minutes), demo (seconds), small (the demo's phantom, 64 x 192), paper (801 x 2160 x 2560)",
     )
-    s.add_argument("--shape", type=int, nargs=2, metavar=("NY", "NX"))
-    s.add_argument("--angles", type=int)
-    s.add_argument("--positions", type=int)
-    s.add_argument("--photons", type=float)
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument(
+        "--shape", type=int, nargs=2, metavar=("NY", "NX"), help="frame size in pixels (default: the preset's)"
+    )
+    s.add_argument("--angles", type=int, help="rotation angles over 180 deg (default: the preset's)")
+    s.add_argument("--positions", type=int, help="diffuser positions K, one reference each (default: the preset's)")
+    s.add_argument("--photons", type=float, help="photons per pixel of the open beam (default: the preset's)")
+    s.add_argument("--seed", type=int, default=0, help="random seed of the diffuser and the noise")
     s.add_argument("--axis-offset-px", type=float, default=0.0, help="rotation axis offset from the frame centre")
     s.add_argument("--corrected", action="store_true", help="write flat/dark-corrected float32 instead of counts")
     s.add_argument(
@@ -388,7 +468,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--grit",
         default=DEFAULT_GRIT,
         choices=list(FEPA_P_GRIT_DIAMETER_M),
-        help=f"the diffuser's sandpaper grade (FEPA P; default {DEFAULT_GRIT}, the paper's, 6.5 um grains)",
+        help=f"the diffuser's sandpaper grade (FEPA P; default {DEFAULT_GRIT}, the paper's, 6.5 µm grains)",
     )
     s.add_argument(
         "--grain-radius-um",
@@ -403,8 +483,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="the diffuser's grains: spheres (default), faceted (pyramids, like crushed SiC) or mixed",
     )
     s.set_defaults(func=_simulate)
-    i = sub.add_parser("ingest", help="TIFF or HDF5 detector files into a scan store (CONTRACT §1)")
-    i.add_argument("out")
+    i = command("ingest", "TIFF or HDF5 detector files into a scan store (CONTRACT §1)")
+    i.add_argument("out", help="the new scan store (a path that does not exist yet)")
     src = "TIFF file or glob, or FILE.h5:/dataset"
     i.add_argument("--projections", nargs="+", help=f"sample frames, one {src} per diffuser position")
     i.add_argument("--reference", nargs="+", help=f"diffuser frames without the sample ({src}), per position")
@@ -413,9 +493,9 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--dxchange", metavar="FILE.h5", help="take the above from tomopy's DXchange layout")
     i.add_argument("--angles", type=float, nargs=2, metavar=("START", "STOP"), help="evenly spaced, inclusive")
     i.add_argument("--angles-from", metavar="FILE", help="a text file of angles or FILE.h5:/dataset")
-    i.add_argument("--angles-unit", default="deg", choices=["deg", "rad"])
-    i.add_argument("--energy-eV", type=float, required=True)
-    i.add_argument("--pixel-size-m", type=float, required=True)
+    i.add_argument("--angles-unit", default="deg", choices=["deg", "rad"], help="unit of the angles given")
+    i.add_argument("--energy-eV", type=float, required=True, help="photon energy in eV (e.g. 20000)")
+    i.add_argument("--pixel-size-m", type=float, required=True, help="effective pixel size in m (e.g. 6.5e-6)")
     i.add_argument("--sample-diffuser-distance-m", type=float, required=True, help="L1 (0: diffuser upstream)")
     i.add_argument("--diffuser-detector-distance-m", type=float, required=True, help="L2")
     i.add_argument(
@@ -425,49 +505,87 @@ def build_parser() -> argparse.ArgumentParser:
         help="with L1 = 0: the diffuser this far upstream of the sample (recorded for PWF)",
     )
     i.add_argument("--coherence-length-x-m", type=float, help="known coherence lengths (else calibrated)")
-    i.add_argument("--coherence-length-y-m", type=float)
+    i.add_argument("--coherence-length-y-m", type=float, help="(give both, or neither to calibrate)")
     i.add_argument("--flat-dark-corrected", action="store_true", help="the frames are already (I - dark)/(flat - dark)")
     i.set_defaults(func=_ingest)
-    r = sub.add_parser("retrieve", help="phase and attenuation of every projection (resumable)")
-    r.add_argument("scan")
-    r.add_argument("recon")
-    _retrieval_options(r)
+    r = command("retrieve", "phase and attenuation of every projection (resumable)")
+    r.add_argument("scan", help="the scan store (CONTRACT §1)")
+    r.add_argument("recon", help="the reconstruction store: created, or resumed with the same options")
+    add_retrieval_options(r)
     _compute_options(r)
     r.set_defaults(func=_retrieve)
-    t = sub.add_parser("tomo", help="delta and beta tomograms by FBP (resumable)")
-    t.add_argument("recon")
+    t = command("tomo", "delta and beta tomograms by FBP (resumable)")
+    t.add_argument("recon", help="a reconstruction store whose projections are retrieved")
     t.add_argument("--center-um", type=float, help="rotation axis on detector x, um from the frame centre")
     _compute_options(t)
     t.set_defaults(func=_tomo)
-    f = sub.add_parser("fsc", help="Fourier shell correlation and resolution")
-    f.add_argument("recon")
-    f.add_argument("--split", default="auto", choices=["auto", "positions", "even-odd"])
-    f.add_argument("--criterion", default="1/4", choices=["1/4", "1/7", "half-bit", "1/2"])
+    f = command("fsc", "Fourier shell correlation and resolution")
+    f.add_argument("recon", help="a reconstruction store with tomograms")
+    _split_option(f)
+    f.add_argument("--criterion", default="1/4", choices=["1/4", "1/7", "half-bit", "1/2"], help="FSC threshold")
     f.set_defaults(func=_fsc)
-    u = sub.add_parser("run", help="retrieve + tomo + fsc")
-    u.add_argument("scan")
-    u.add_argument("recon")
-    u.add_argument("--split", default="auto", choices=["auto", "positions", "even-odd"])
-    u.add_argument("--center-um", type=float)
-    _retrieval_options(u)
+    u = command("run", "retrieve + tomo + fsc + preview figures (resumable)")
+    u.add_argument("scan", help="the scan store (CONTRACT §1)")
+    u.add_argument("recon", help="the reconstruction store: created, or resumed with the same options")
+    _split_option(u)
+    u.add_argument(
+        "--center-um", type=float, help="rotation axis on detector x, um from the frame centre (default: found)"
+    )
+    u.add_argument(
+        "--figures", metavar="DIR", help="where `run` writes its figures (default: RECON's folder/NAME_figures)"
+    )
+    add_retrieval_options(u)
     _compute_options(u)
     u.set_defaults(func=_run)
-    d = sub.add_parser("demo", help="simulate a small scan, reconstruct it, write figures")
+    m = command("estimate", "peak memory per worker and time of each stage, predicted before a run")
+    m.add_argument("scan", help="the scan store (only its metadata is read)")
+    m.add_argument("--workers", type=int, default=1, help="single-threaded workers the time is divided over")
+    m.add_argument(
+        "--iterations", type=int, default=250, help="PWF iterations per projection (250: the median with angle chains)"
+    )
+    m.add_argument(
+        "--field-upsample", type=int, default=1, choices=[1, 2, 3], help="the sample field's grid (run's option)"
+    )
+    m.set_defaults(func=_estimate)
+    w = command("verify", "read every chunk of a scan or reconstruction store: missing or damaged ones (exit 1)")
+    w.add_argument("store", help="a scan or reconstruction store")
+    w.add_argument(
+        "--repair",
+        action="store_true",
+        help="mark damaged projections and row blocks not done (their chunks removed): 'run' then recomputes them",
+    )
+    w.set_defaults(func=_verify)
+    v = command("preview", "figures of a reconstruction: projection panels, delta/beta slices, FSC")
+    v.add_argument("recon", help="a reconstruction store (figures of whatever stages it holds)")
+    v.add_argument("dir", nargs="?", help="output folder (default: RECON_figures beside the store)")
+    v.set_defaults(func=_preview)
+    e = command("export", "delta and beta tomograms to float32 TIFF (voxel size in the resolution tags)")
+    e.add_argument("recon", help="a reconstruction store with tomograms")
+    e.add_argument("dir", help="output folder (created; existing files of the same names are refused)")
+    e.add_argument("--format", default="tiff", choices=["tiff"], help="file format")
+    e.add_argument(
+        "--layout",
+        default="stack",
+        choices=["stack", "slices"],
+        help="stack: one multi-page file per volume; slices: a folder per volume, one file per slice",
+    )
+    e.set_defaults(func=_export)
+    d = command("demo", "simulate a small scan, reconstruct it, write figures")
     d.add_argument("dir", nargs="?", default="pwf-dask-demo", help="output folder (default ./pwf-dask-demo)")
-    d.add_argument("--max-iter", type=int, default=300)
-    d.add_argument("--phase-scale", type=float, default=1.0)
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--max-iter", type=int, default=300, help="PWF iterations per projection at most")
+    d.add_argument("--phase-scale", type=float, default=1.0, help="metric scale kappa of the phase block")
+    d.add_argument("--seed", type=int, default=0, help="random seed of the simulated scan")
     _compute_options(d)
     d.set_defaults(func=_scan_demo)
-    b = sub.add_parser("bench", help="benchmarks; results to workflows/results/")
+    b = command("bench", "benchmarks; results to workflows/results/")
     b.add_argument(
         "what",
         choices=["iteration", "scan", "accuracy", "stability"],
         help="iteration: PWF iteration / FFT time; scan: throughput per worker; accuracy: speed vs error; "
         "stability: where each method fails",
     )
-    b.add_argument("--device", default="cpu", choices=["cpu", "gpu", "auto"])
-    b.add_argument("--out", default="workflows/results")
+    b.add_argument("--device", default="cpu", choices=["cpu", "gpu", "auto"], help="NumPy or CuPy numerics")
+    b.add_argument("--out", default="workflows/results", help="folder of the result files")
     b.add_argument("--quick", action="store_true", help="one small size or scene (smoke test)")
     b.add_argument(
         "--preset",
@@ -500,8 +618,13 @@ def _interrupted_message(args) -> str:
     return f"pwf-dask {args.command}: interrupted{saved}; run the same command to resume"
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"pwf-dask: warning: {message}", file=sys.stderr if file is None else file)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    warnings.showwarning = _one_line_warning
     try:
         return int(args.func(args) or 0)
     except (ValueError, OSError, RuntimeError) as exc:

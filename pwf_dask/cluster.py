@@ -1,15 +1,17 @@
 """Where tasks run: the schedulers of CONTRACT §3, all existing Dask deployments.
 
-``threads`` (default: the local threaded scheduler, nothing to start), ``processes``,
-``local`` (a distributed LocalCluster, dashboard on localhost), ``local-cuda`` (dask-cuda's
-LocalCUDACluster, one worker per GPU, tasks ask for ``resources={"GPU": 1}``) or a scheduler
-address ``tcp://HOST:PORT`` of a running cluster (dask-jobqueue, Kubernetes, ...; when its
-workers advertise a ``GPU`` resource, every task asks for one).
+``threads`` (default: the local threaded scheduler, nothing to start), ``processes`` and
+``local`` (a distributed LocalCluster of worker processes under nannies; ``local`` with its
+dashboard on 127.0.0.1), ``local-cuda`` (dask-cuda's LocalCUDACluster, one worker per GPU,
+tasks ask for ``resources={"GPU": 1}``) or a scheduler address ``tcp://HOST:PORT`` /
+``tls://HOST:PORT`` (with ``security``) of a running cluster (dask-jobqueue, Kubernetes, ...;
+when its workers advertise a ``GPU`` resource, every task asks for one).
 
-Tasks go through :meth:`Runner.map`, which shows progress and returns results in order. On
-distributed, tasks are submitted one by one with ``client.submit`` so that resource
-annotations survive (graph optimisation would drop them). CPU tasks get an FFT thread budget
-of cores / concurrent tasks, so FFT threads never oversubscribe the machine.
+Tasks go through :meth:`Runner.map`, which shows progress (per projection, with the time
+left) and returns results in order. On distributed, tasks are submitted one by one with
+``client.submit`` so that resource annotations survive (graph optimisation would drop them).
+CPU tasks get an FFT thread budget of cores / concurrent tasks, so FFT threads never
+oversubscribe the machine.
 """
 
 from __future__ import annotations
@@ -18,9 +20,14 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 SCHEDULERS = ("threads", "processes", "local", "local-cuda")
+ADDRESS_PREFIXES = ("tcp://", "tls://", "ucx://")
+#: the LocalCluster dashboard's default bind: this host only (issue #29: ":0" answered from
+#: other machines, unauthenticated)
+DEFAULT_DASHBOARD_ADDRESS = "127.0.0.1:0"
 
 
 def cpu_count() -> int:
@@ -30,28 +37,70 @@ def cpu_count() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def check_scheduler(scheduler: str, security: str | None = None) -> None:
+    """Refuse, in one line and before anything is written, a scheduler that cannot be used:
+    an unknown name, or ``tls://`` with neither ``security`` nor Dask's TLS configuration."""
+    if scheduler not in SCHEDULERS and not scheduler.startswith(ADDRESS_PREFIXES):
+        raise ValueError(f"unknown scheduler {scheduler!r}: use {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
+    if security is not None and not Path(security).is_file():
+        raise ValueError(f"--security {security}: no such file (a YAML of tls_ca_file, tls_client_cert, ...)")
+    if scheduler.startswith("tls://") and security is None:
+        import dask
+
+        if not dask.config.get("distributed.comm.tls.ca-file", None):
+            raise ValueError(
+                "a tls:// scheduler needs --security FILE (tls_ca_file, tls_client_cert, tls_client_key) "
+                "or Dask's distributed.comm.tls configuration (docs/clusters.md)"
+            )
+
+
+def load_security(path: str | None):
+    """A :class:`distributed.Security` from a YAML file of its keyword arguments, or None."""
+    if path is None:
+        return None
+    import yaml
+    from distributed import Security
+
+    with open(path) as f:
+        options = yaml.safe_load(f) or {}
+    if not isinstance(options, dict):
+        raise ValueError(f"--security {path}: expected a mapping of Security options, got {type(options).__name__}")
+    try:
+        return Security(**options)
+    except TypeError as exc:
+        raise ValueError(f"--security {path}: {exc}") from None
+
+
 @dataclass
 class Runner:
-    """A connection to one scheduler; use as a context manager (closes what it started)."""
+    """A connection to one scheduler; use as a context manager (closes what it started).
+
+    ``processes`` and ``local`` are both a distributed LocalCluster of single-threaded worker
+    processes under nannies (a lost worker is restarted and its tasks retried; workers end
+    with the run); only ``local`` serves the dashboard, on ``dashboard_address``.
+    """
 
     scheduler: str = "threads"
     workers: int | None = None
     gpu: bool = False
     client: Any = None
+    dashboard_address: str = DEFAULT_DASHBOARD_ADDRESS
+    security: str | None = None
     _owned: list = field(default_factory=list)
 
     def __post_init__(self):
         s = self.scheduler
-        if s not in SCHEDULERS and not s.startswith(("tcp://", "tls://", "ucx://")):
-            raise ValueError(f"unknown scheduler {s!r}: use {', '.join(SCHEDULERS)} or tcp://HOST:PORT")
-        if s == "local":
+        check_scheduler(s, self.security)
+        if s in ("local", "processes"):
             from distributed import Client, LocalCluster
 
             n = self.workers or cpu_count()
-            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0")
+            dashboard = self.dashboard_address if s == "local" else None
+            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=dashboard)
             self.client = Client(cluster)
             self._owned += [self.client, cluster]
-            print(f"LocalCluster with {n} workers; dashboard {self.client.dashboard_link}", file=sys.stderr)
+            where = f"; dashboard {self.client.dashboard_link}" if dashboard else ""
+            print(f"LocalCluster with {n} worker processes{where}", file=sys.stderr)
         elif s == "local-cuda":
             try:
                 from dask_cuda import LocalCUDACluster
@@ -59,14 +108,17 @@ class Runner:
                 raise ValueError("--scheduler local-cuda needs dask-cuda: pip install 'pwf-dask[gpu]'") from None
             from distributed import Client
 
-            cluster = LocalCUDACluster(resources={"GPU": 1})
+            cluster = LocalCUDACluster(resources={"GPU": 1}, dashboard_address=self.dashboard_address)
             self.client = Client(cluster)
             self._owned += [self.client, cluster]
             self.gpu = True
-        elif s.startswith(("tcp://", "tls://", "ucx://")):
+        elif s.startswith(ADDRESS_PREFIXES):
             from distributed import Client
 
-            self.client = Client(s)
+            try:
+                self.client = Client(s, security=load_security(self.security), timeout="30s")
+            except OSError as exc:
+                raise ValueError(f"cannot reach the scheduler at {s}: {_first_line(exc)}") from None
             self._owned.append(self.client)
             # workers started with --resources GPU=1 (dask-jobqueue, Kubernetes): ask for one
             workers = self.client.scheduler_info().get("workers", {})
@@ -98,26 +150,46 @@ class Runner:
             return None
         return max(1, cpu_count() // self.concurrency)
 
-    def map(self, fn: Callable, items: Sequence, *, label: str = "tasks", **kwargs) -> list:
-        """``[fn(item, **kwargs) for item in items]`` on the scheduler, with progress."""
+    def map(
+        self,
+        fn: Callable,
+        items: Sequence,
+        *,
+        label: str = "tasks",
+        unit: str = "tasks",
+        count: Callable[[], int] | None = None,
+        total: int | None = None,
+        **kwargs,
+    ) -> list:
+        """``[fn(item, **kwargs) for item in items]`` on the scheduler, in order, with progress
+        on stderr (:class:`~pwf_dask.progress.Progress`): ``count()`` of ``total`` when given
+        (what has landed in the store, finer than a task), else the tasks finished."""
+        from .progress import Progress
+
         if not items:
             return []
         if self.client is not None:
-            from distributed import progress
-
             res = {"GPU": 1} if self.gpu else None
             futures = [self.client.submit(fn, it, pure=False, resources=res, **kwargs) for it in items]
-            print(f"{label}: {len(futures)}", file=sys.stderr)
-            progress(futures, notebook=False)
-            print(file=sys.stderr)
-            return self.client.gather(futures)
+            with Progress(label, total or len(futures), count or (lambda: sum(f.done() for f in futures)), unit=unit):
+                return self.client.gather(futures)
         import dask
-        from dask.diagnostics import ProgressBar
+        from dask.callbacks import Callback
 
         tasks = [dask.delayed(fn, pure=False)(it, **kwargs) for it in items]
-        print(f"{label}: {len(tasks)}", file=sys.stderr)
-        with ProgressBar(out=sys.stderr):
+        keys = {t.key for t in tasks}
+        finished = [0]
+
+        class _Finished(Callback):
+            def _posttask(self, key, result, dsk, state, worker_id):
+                finished[0] += key in keys
+
+        with _Finished(), Progress(label, total or len(tasks), count or (lambda: finished[0]), unit=unit):
             return list(dask.compute(*tasks, scheduler=self.scheduler, num_workers=self.concurrency))
+
+
+def _first_line(exc: Exception) -> str:
+    return (str(exc).splitlines() or [type(exc).__name__])[0]
 
 
 def worker_fft_threads(default: int | None) -> int | None:

@@ -4,14 +4,14 @@ Real frames carry single-pixel spikes that no optics made: zingers (scattered X-
 cosmic rays hitting the sensor, a different set in every frame), and hot or cold pixels the
 dark/flat correction did not remove. PWF fits every pixel, and its preconditioner turns one
 spike into a broad phase bump: six zingers of 10x the mean in a 256^2 frame raise the
-relative phase error from 0.049 to 0.085, 65 of them to 0.47 (README, Detector defects).
+relative phase error from 0.049 to 0.085, 65 of them to 0.47 (docs/validation.md, Detector defects).
 
 The test is the one a band-limited speckle image allows. The coherence blur (IOTF) and the
 pixel aperture make every physical intensity peak or dip shared by its neighbours, so a
 pixel is a defect when it stands above the largest of its 8 neighbours, or below the
 smallest, by more than ``threshold_sigma`` robust noise sigmas (:func:`noise_sigma`, which
 the photon noise dominates). Clusters of two or more bright pixels are not caught (each has a
-bright neighbour); the measured false alarms are in README.md.
+bright neighbour); the measured false alarms are in docs/validation.md.
 """
 
 from __future__ import annotations

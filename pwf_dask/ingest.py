@@ -23,6 +23,7 @@ import glob
 import re
 import shutil
 import sys
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -230,9 +231,12 @@ def ingest_scan(
         if not np.isfinite(v) or (v <= 0 if positive else v < 0):
             raise ScanError(f"{name} must be {'positive' if positive else '>= 0'}, got {value}")
     try:
+        from .optics import PLAUSIBLE_GEOMETRY, check_plausible_geometry
         from .retrieval import check_diffuser_upstream
 
         check_diffuser_upstream(diffuser_upstream_m, float(sample_diffuser_distance_m))
+        # the parameters are named as the ranges are: every geometry value given, by its name
+        check_plausible_geometry(**{k: v for k, v in locals().items() if k in PLAUSIBLE_GEOMETRY})
     except ValueError as exc:
         raise ScanError(str(exc)) from None
     proj_specs = [projections] if isinstance(projections, str) else list(projections)
@@ -269,6 +273,13 @@ def ingest_scan(
             raise ScanError("projections: no frames")
         angles_deg = read_angles_deg(angles, n_ang, angles_range_deg, angles_unit)
         integer = all(s.dtype == np.uint16 for s in sources) and not flat_dark_corrected
+        if not (flat_dark_corrected or flat_src or dark_src):
+            warnings.warn(
+                "no flat and no dark: the frames are used as they are (a dark offset then reads as attenuation; "
+                "give --flat/--dark, or --flat-dark-corrected if they already are)",
+                UserWarning,
+                stacklevel=2,
+            )
         dtype = np.uint16 if integer else np.float32
 
         def stored(a):

@@ -31,6 +31,34 @@ def wavelength_m(energy_eV: float) -> float:
     return PLANCK_EV_M / float(energy_eV)
 
 
+#: Where a speckle-imaging geometry can lie; a value outside is a unit slip (keV for eV, um
+#: for m), refused before anything is computed or written. Wide on purpose: soft X-ray
+#: microscopes to MeV radiography, nanometre pixels to 1 mm, tabletop to 1 km beamlines.
+PLAUSIBLE_GEOMETRY = {
+    "energy_eV": (1e2, 1e6, "X-ray photon energy in eV, e.g. 20000 for 20 keV"),
+    "pixel_size_m": (1e-9, 1e-3, "the effective pixel in metres, e.g. 6.5e-06 for 6.5 um"),
+    "sample_diffuser_distance_m": (0.0, 1e2, "L1 in metres"),
+    "diffuser_detector_distance_m": (1e-5, 1e2, "L2 in metres, e.g. 0.02 for 20 mm"),
+    "diffuser_upstream_m": (0.0, 1e3, "in metres"),
+    "coherence_length_x_m": (1e-9, 1e-2, "in metres, e.g. 3.5e-06"),
+    "coherence_length_y_m": (1e-9, 1e-2, "in metres, e.g. 3.5e-06"),
+}
+
+
+def check_plausible_geometry(**values: float | None) -> None:
+    """Refuse (ValueError, one line) a geometry value outside :data:`PLAUSIBLE_GEOMETRY`; None
+    skips a value, and 0 is accepted for a coherence length (full coherence)."""
+    for name, value in values.items():
+        if value is None:
+            continue
+        low, high, hint = PLAUSIBLE_GEOMETRY[name]
+        v = float(value)
+        if name.startswith("coherence_length") and v == 0:
+            continue
+        if not (np.isfinite(v) and low <= v <= high):
+            raise ValueError(f"{name} = {value:g} is outside {low:g} to {high:g}: expected {hint}")
+
+
 def frequency_grid(shape: tuple[int, int], spacing: float = 1.0, half: bool = False):
     """Spatial frequencies (v, u) in cycles per unit of ``spacing`` (float64, host).
 

@@ -58,7 +58,7 @@ def parse_alpha(alpha) -> complex | str:
             alpha = complex(text)
         except ValueError:
             raise ValueError(
-                f"alpha must be 'auto', 'paper' or a complex number like 0.1+0.01j, got {alpha!r}"
+                f"alpha must be 'discrepancy', 'paper' or a complex number like 0.1+0.01j, got {alpha!r}"
             ) from None
     alpha = complex(alpha)
     if not (np.isfinite(alpha.real) and np.isfinite(alpha.imag)) or alpha.real < 0 or alpha.imag < 0:
@@ -488,6 +488,15 @@ def retrieve_projection(
             f"got {sample_diffuser_distance_m}, {diffuser_detector_distance_m}"
         )
     check_diffuser_upstream(diffuser_upstream_m, sample_diffuser_distance_m)
+    optics.check_plausible_geometry(
+        energy_eV=energy_eV,
+        pixel_size_m=pixel_size_m,
+        sample_diffuser_distance_m=sample_diffuser_distance_m,
+        diffuser_detector_distance_m=diffuser_detector_distance_m,
+        diffuser_upstream_m=diffuser_upstream_m,
+        coherence_length_x_m=coherence_length_x_m,
+        coherence_length_y_m=coherence_length_y_m,
+    )
     check_solver_options(max_iter, tol, gamma, step, phase_scale)
     alpha = parse_alpha(alpha)
     if isinstance(initial, str) and initial not in ("zero", "umpa"):
@@ -752,7 +761,7 @@ def retrieve_tracking(
     phase and attenuation there continue the edge values. Uncorrected, a
     drift eats into UMPA's search range, puts every displacement at LCS's linearisation
     limit or at the sub-pixel fit's half-pixel worst case, and the unmatched strips feed
-    wrong displacements into the Fourier integration (README, "Diffuser drift").
+    wrong displacements into the Fourier integration (docs/validation.md, "Diffuser drift").
     """
     from . import tracking
 

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import integrity
+
 REQUIRED_ATTRS = (
     "energy_eV",
     "pixel_size_m",
@@ -58,12 +60,13 @@ class ScanInfo:
 
 
 def _attr_float(attrs, name, path):
-    try:
-        value = float(attrs[name])
-    except KeyError:
-        raise ScanError(f"{path}: missing attribute {name!r}") from None
-    except (TypeError, ValueError):
-        raise ScanError(f"{path}: attribute {name!r} is not a number: {attrs[name]!r}") from None
+    if name not in attrs:
+        raise ScanError(f"{path}: missing attribute {name!r}")
+    raw = attrs[name]
+    # a number, not text that looks like one, nor a boolean (which float() would take as 0/1)
+    if isinstance(raw, (bool, np.bool_)) or not isinstance(raw, (int, float, np.integer, np.floating)):
+        raise ScanError(f"{path}: attribute {name!r} is not a number: {raw!r} ({type(raw).__name__})")
+    value = float(raw)
     if not np.isfinite(value):
         raise ScanError(f"{path}: attribute {name!r} is not finite")
     return value
@@ -133,8 +136,15 @@ def open_scan(path: str | Path, check_values: bool = True):
     angles = np.asarray(ds["angle"].values, dtype=np.float64)
     if not np.all(np.isfinite(angles)):
         raise ScanError(f"{path}: angle coordinate has non-finite values")
-    if nang < 1 or min(ny, nx) < 16:
-        raise ScanError(f"{path}: projections {ds['projections'].shape} too small (need >= 1 angle, 16 x 16 px)")
+    if npos < 1 or nang < 1 or min(ny, nx) < 16:
+        raise ScanError(
+            f"{path}: projections {ds['projections'].shape} too small (need >= 1 position and angle, 16 x 16 px)"
+        )
+    for name in ("projections", "reference", "flat", "dark"):
+        if name in ds and not (np.issubdtype(ds[name].dtype, np.integer) or np.issubdtype(ds[name].dtype, np.floating)):
+            raise ScanError(f"{path}: {name} has dtype {ds[name].dtype}; intensities are real numbers (int or float)")
+    if nang > 1 and np.ptp(angles) == 0:
+        raise ScanError(f"{path}: all {nang} angles are {angles[0]:g} deg; a scan rotates the sample")
     attrs = dict(ds.attrs)
     vals = {name: _attr_float(attrs, name, path) for name in REQUIRED_ATTRS}
     if vals["energy_eV"] <= 0:
@@ -148,12 +158,6 @@ def open_scan(path: str | Path, check_values: bool = True):
             f"{path}: diffuser_detector_distance_m must be positive, got {vals['diffuser_detector_distance_m']}"
         )
     upstream = _attr_float(attrs, "diffuser_upstream_m", path) if "diffuser_upstream_m" in attrs else 0.0
-    try:
-        from .retrieval import check_diffuser_upstream
-
-        upstream = check_diffuser_upstream(upstream, vals["sample_diffuser_distance_m"])
-    except ValueError as exc:
-        raise ScanError(f"{path}: {exc}") from None
     coh = []
     for name in ("coherence_length_x_m", "coherence_length_y_m"):
         if name in attrs:
@@ -163,7 +167,23 @@ def open_scan(path: str | Path, check_values: bool = True):
             coh.append(c)
         else:
             coh.append(None)
-    corrected = bool(attrs.get("flat_dark_corrected", False))
+    try:
+        from .optics import check_plausible_geometry
+        from .retrieval import check_diffuser_upstream
+
+        upstream = check_diffuser_upstream(upstream, vals["sample_diffuser_distance_m"])
+        check_plausible_geometry(
+            **vals, diffuser_upstream_m=upstream, coherence_length_x_m=coh[0], coherence_length_y_m=coh[1]
+        )
+    except ValueError as exc:
+        raise ScanError(f"{path}: {exc}") from None
+    corrected = attrs.get("flat_dark_corrected", False)
+    if not isinstance(corrected, (bool, np.bool_)):
+        raise ScanError(
+            f"{path}: attribute 'flat_dark_corrected' must be a boolean (true/false), got {corrected!r} "
+            f"({type(corrected).__name__})"
+        )
+    corrected = bool(corrected)
     p = vals["pixel_size_m"]
     x = np.asarray(ds["x"].values, np.float64) if "x" in ds.coords else (np.arange(nx) - (nx - 1) / 2) * p
     y = np.asarray(ds["y"].values, np.float64) if "y" in ds.coords else (np.arange(ny) - (ny - 1) / 2) * p
@@ -192,7 +212,45 @@ def open_scan(path: str | Path, check_values: bool = True):
 
 
 def check_scan_values(ds, info: ScanInfo) -> None:
-    """Refuse non-finite or negative intensities after correction (a chunked Dask pass)."""
+    """Refuse non-finite or negative intensities after correction (a chunked Dask pass, reduced
+    per frame so that the refusal names the first bad frame's position and angle), and missing
+    or undecodable chunks (named)."""
+    _check_chunks_exist(info.path)
+    try:
+        _check_values(ds, info)
+    except ScanError:
+        raise
+    except Exception:  # a chunk that does not decode: name it
+        import zarr
+
+        g = zarr.open_group(info.path, mode="r")
+        for name in ("flat", "dark", "reference", "projections"):
+            if name in g:
+                for index in integrity.chunk_grid(g[name]):
+                    try:
+                        integrity.read_chunk(info.path, g[name], name, index)
+                    except integrity.DamagedChunk as exc:
+                        raise ScanError(f"{exc}; restore or re-ingest that frame") from None
+        raise
+
+
+def _check_chunks_exist(path: str) -> None:
+    """Every chunk of the scan's frames is stored (one stat each): a lost file is never read
+    as zeros. Only for arrays pwf-dask wrote (checksummed, every chunk stored): other writers
+    may leave out a chunk equal to the fill value."""
+    import zarr
+
+    g = zarr.open_group(path, mode="r")
+    for name in ("flat", "dark", "reference", "projections"):
+        if name in g and integrity.has_checksums(g[name]):
+            for index in integrity.chunk_grid(g[name]):
+                if not integrity.chunk_path(path, name, index).exists():
+                    raise ScanError(f"{path}: {name} chunk {index} is missing; restore or re-ingest that frame")
+
+
+def _check_values(ds, info: ScanInfo) -> None:
+    import warnings
+
     import dask
     import dask.array as da
 
@@ -210,12 +268,18 @@ def check_scan_values(ds, info: ScanInfo) -> None:
                 den = da.asarray(flat).astype(np.float32) - (0 if dark is None else da.asarray(dark).astype(np.float32))
                 with np.errstate(divide="ignore", invalid="ignore"):
                     cor = cor / den
-        with np.errstate(divide="ignore", invalid="ignore"):
-            finite, minimum = dask.compute(da.isfinite(cor).all(), da.nanmin(cor), scheduler="threads")
-        if not finite:
-            raise ScanError(f"{info.path}: {name} has non-finite values after flat/dark correction")
-        if minimum < 0:
-            raise ScanError(f"{info.path}: {name} has negative values after flat/dark correction (min {minimum:.3g})")
+        with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN frame: named below
+            finite, minimum = dask.compute(
+                da.isfinite(cor).all(axis=(-2, -1)), da.nanmin(cor, axis=(-2, -1)), scheduler="threads"
+            )
+        for bad, what in ((~finite, "non-finite values (NaN or inf)"), (minimum < 0, "negative values")):
+            if bad.any():
+                where = np.argwhere(bad)[0]
+                frame = f"position {where[0]}" + (
+                    f", angle {where[1]} ({float(info.angles_deg[where[1]]):g} deg)" if name == "projections" else ""
+                )
+                raise ScanError(f"{info.path}: {name} at {frame} has {what} after flat/dark correction")
 
 
 def row_block(ny: int, nx: int) -> int:
@@ -243,6 +307,7 @@ VARIABLE_ATTRS: dict[str, tuple[str, str]] = {
     "converged": ("1", "stop rule met before max_iter"),
     "residual_rmse": ("percent", "RMS data residual over the mean reference"),
     "outlier_pixels": ("1", "pixels repaired as outliers"),
+    "preview_residual": ("percent", "data residual |y - f| of the first angle's projection (preview)"),
     "diffuser_drift_y_px": ("pixel", "measured speckle drift against the reference, rows"),
     "diffuser_drift_x_px": ("pixel", "measured speckle drift against the reference, columns"),
     "delta": ("1", "refractive index decrement delta"),
@@ -259,7 +324,14 @@ VARIABLE_ATTRS: dict[str, tuple[str, str]] = {
 
 def _create(group, name, shape, chunks, dims, dtype, fill, data=None):
     arr = group.create_array(
-        name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill, dimension_names=dims, overwrite=True
+        name,
+        shape=shape,
+        chunks=chunks,
+        dtype=dtype,
+        fill_value=fill,
+        dimension_names=dims,
+        overwrite=True,
+        compressors=integrity.chunk_compressors(),
     )
     if name in VARIABLE_ATTRS:
         units, long_name = VARIABLE_ATTRS[name]
@@ -292,30 +364,72 @@ RECON_KEYS = (
 
 
 def create_reconstruction(path: str | Path, info: ScanInfo, params: dict):
-    """Create (or reopen, when its parameters match) the reconstruction store for ``info``.
+    """Create (or reopen, when its parameters and scan match) the reconstruction store.
 
-    Returns the zarr group. A store made with other retrieval parameters is refused rather
-    than mixed: resuming must never combine two reconstructions.
+    Returns the zarr group. A store made with other retrieval parameters, or from another
+    scan (``params["scan_fingerprint"]``, :func:`pwf_dask.integrity.scan_fingerprint`), is
+    refused rather than mixed: resuming must never combine two reconstructions. A new store is
+    built whole under a hidden name and renamed into place (:func:`integrity.atomic_directory`),
+    so a kill during creation leaves no store at ``path``.
     """
     import zarr
 
+    from .integrity import atomic_directory
+
     path = str(path)
-    npos, nang = info.n_positions, info.angles_deg.size
-    ny, nx = info.shape
     if Path(path).exists():
-        try:
-            g = zarr.open_group(path, mode="r+", use_consolidated=False)
-        except Exception as exc:
-            raise ScanError(f"{path}: exists and is not a reconstruction store ({exc})") from None
-        old = json.loads(g.attrs.get("pwf_dask_parameters", "{}"))
-        diff = [k for k in RECON_KEYS if k in old and k in params and str(old[k]) != str(params[k])]
+        g = _reopen_reconstruction(path, info, params)
+        if g is not None:
+            return g
+    with atomic_directory(path) as tmp:
+        _build_reconstruction(str(tmp), info, params)
+    return zarr.open_group(path, mode="r+", use_consolidated=False)
+
+
+def _reopen_reconstruction(path: str, info: ScanInfo, params: dict):
+    """The existing store at ``path`` if it is this reconstruction; None if it is an unfinished
+    creation with nothing computed in it (removed, to be created again); else ScanError."""
+    import shutil
+
+    import zarr
+
+    from .integrity import Fingerprint
+
+    try:
+        g = zarr.open_group(path, mode="r+", use_consolidated=False)
+    except Exception as exc:
+        raise ScanError(f"{path}: exists and is not a reconstruction store ({type(exc).__name__})") from None
+    if "pwf_dask_parameters" not in g.attrs:
+        started = "iterations" in g and int(np.max(g["iterations"][...], initial=-1)) >= 0
+        if "phase" in g and not started:  # a creation killed before its attributes (pre-#29 stores)
+            shutil.rmtree(path)
+            return None
+        raise ScanError(f"{path}: exists and is not a complete reconstruction store; use a new path")
+    old = json.loads(g.attrs["pwf_dask_parameters"])
+    if "scan_fingerprint" in old and "scan_fingerprint" in params:
+        diff = Fingerprint.decode(old["scan_fingerprint"]).differences(Fingerprint.decode(params["scan_fingerprint"]))
         if diff:
             raise ScanError(
-                f"{path}: exists with other parameters ({', '.join(diff)}); use a new path to reconstruct again"
+                f"{path}: was made from another scan ({old.get('scan', g.attrs.get('scan'))}; its "
+                f"{', '.join(diff)} differ); use a new path for this scan"
             )
-        if "phase" not in g or g["phase"].shape != (npos, nang, ny, nx):
-            raise ScanError(f"{path}: exists and does not match this scan's shape")
-        return g
+    diff = [k for k in RECON_KEYS if k in old and k in params and str(old[k]) != str(params[k])]
+    if diff:
+        raise ScanError(
+            f"{path}: exists with other parameters ({', '.join(diff)}); use a new path to reconstruct again"
+        )
+    npos, nang = info.n_positions, info.angles_deg.size
+    if "phase" not in g or g["phase"].shape != (npos, nang, *info.shape):
+        raise ScanError(f"{path}: exists and does not match this scan's shape")
+    return g
+
+
+def _build_reconstruction(path: str, info: ScanInfo, params: dict) -> None:
+    """Every array and attribute of a new reconstruction store, written at ``path``."""
+    import zarr
+
+    npos, nang = info.n_positions, info.angles_deg.size
+    ny, nx = info.shape
     g = zarr.open_group(path, mode="w")
     rb = row_block(ny, nx)
     _create(g, "position", (npos,), (npos,), ("position",), "int64", 0, np.arange(npos))
@@ -328,6 +442,9 @@ def create_reconstruction(path: str | Path, info: ScanInfo, params: dict):
     _create(g, "converged", (npos, nang), (1, 1), ("position", "angle"), "bool", False)
     _create(g, "residual_rmse", (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
     _create(g, "outlier_pixels", (npos, nang), (1, 1), ("position", "angle"), "int32", -1)
+    # the fit's per-pixel residual is kept for one projection per position: what a user checks
+    # first (structure in it is a model error), at the cost of one frame, not one per angle
+    _create(g, "preview_residual", (npos, ny, nx), (1, rb, nx), ("position", "y", "x"), "float32", np.nan)
     # the speckle's measured drift (the multi-image trackers: the mean over the K positions)
     for name in ("diffuser_drift_y_px", "diffuser_drift_x_px"):
         _create(g, name, (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
@@ -336,7 +453,6 @@ def create_reconstruction(path: str | Path, info: ScanInfo, params: dict):
     attrs["pwf_dask_parameters"] = json.dumps(params, default=str)
     attrs["scan"] = info.path
     g.attrs.update(attrs)
-    return g
 
 
 def consolidate(path: str | Path) -> None:

@@ -20,6 +20,7 @@ attenuation are the pixel means of the fine-grid line integrals.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -28,6 +29,7 @@ from . import diffusers, optics
 from .backend import FFT
 from .calibration import shift_transmission
 from .materials import delta_beta
+from .progress import Progress
 
 
 @dataclass(frozen=True)
@@ -555,7 +557,7 @@ PRESETS: dict[str, dict] = {
     "beads": dict(shape=(160, 320), angles=121, positions=2, photons=1e4, bead_radius_m=PAPER_BEAD_RADIUS_M),
     # seconds on a laptop: what `pwf-dask demo` reconstructs. The phantom is the paper's
     # shrunk to 128 px: its beads are 12 px (2 coherence lengths) in radius, smaller than
-    # the paper's, and PWF with the paper's alpha overshoots them (README, Where PWF fails)
+    # the paper's, and PWF with the paper's alpha overshoots them (docs/validation.md, Where PWF fails)
     "demo": dict(shape=(48, 128), angles=61, positions=2, photons=1e4),
     # the demo's phantom on a larger frame: beads up to 18 px in radius
     "small": dict(shape=(64, 192), angles=121, positions=2, photons=1e4),
@@ -706,20 +708,18 @@ def simulate_scan(
             counts = add_zingers(counts.astype(np.float64), photons)
         return np.clip(counts, 0, 65535).astype(np.uint16)
 
-    total = n_pos * n_ang
-    done = 0
-    for k in range(n_pos):
-        sim = SpeckleSimulator(setup, seed=seed + 101 * k)
-        t = sim.diffuser()
-        g["reference"][k] = detect(sim.intensity(None, t))
-        for a, ang in enumerate(angles_deg):
-            fld, psi = sim.sample_field(phantom, float(ang))
-            t_a = sim.diffuser(tuple(drift * a / (n_ang - 1))) if drift.any() else t
-            g["projections"][k, a] = detect(sim.intensity(fld, t_a, sim.dark_field_sigma_px(psi, dark_field_px)))
-            done += 1
-            if progress and (done % max(1, total // 20) == 0 or done == total):
-                print(f"\rsimulating projections: {done}/{total}", end="", file=__import__("sys").stderr)
-    if progress:
-        print(file=__import__("sys").stderr)
+    written = [0]
+    with contextlib.ExitStack() as stack:
+        if progress:
+            stack.enter_context(Progress("simulate", n_pos * n_ang, lambda: written[0], unit="projections"))
+        for k in range(n_pos):
+            sim = SpeckleSimulator(setup, seed=seed + 101 * k)
+            t = sim.diffuser()
+            g["reference"][k] = detect(sim.intensity(None, t))
+            for a, ang in enumerate(angles_deg):
+                fld, psi = sim.sample_field(phantom, float(ang))
+                t_a = sim.diffuser(tuple(drift * a / (n_ang - 1))) if drift.any() else t
+                g["projections"][k, a] = detect(sim.intensity(fld, t_a, sim.dark_field_sigma_px(psi, dark_field_px)))
+                written[0] += 1
     scan_io.consolidate(path)
     return str(path)

@@ -29,7 +29,7 @@ mean reference of 1 first, so either is scale-free. The paper's form with eta = 
 in ~50 iterations when iterated blindly; here the backtracking halves eta instead. N_t sets
 the balance between data and regularizer: on our realistic scenes the released form makes
 Re(alpha) = 0.1 damp the attenuation (gain 0.78), the printed form gives gains within 3 %
-(README, "Accuracy").
+(docs/validation.md).
 """
 
 from __future__ import annotations
@@ -141,7 +141,7 @@ def phase_block_scale(wavelength: float, diffuser_detector_distance_m: float, pi
     direction (preconditioned gradient and regularizer term) by kappa is a change of metric:
     J and its minimiser are untouched, and kappa = 1 at the paper's set-up. Opt-in
     (``phase_scale="auto"``): on a 35 pi glass rod at 2 um pixels it moves the phase but into
-    a wrong basin (README, "Where PWF fails").
+    a wrong basin (docs/validation.md, "Where PWF fails").
     """
     f = wavelength * diffuser_detector_distance_m / pixel_size_m**2
     return (PAPER_FRESNEL_SCALE / f) ** 2
@@ -186,7 +186,7 @@ def build_model(
     model evaluates exp(U psi), with U the band-limited (spectral zero-padding) interpolation
     to an s-times finer grid, and propagates on that grid with U t. On the detector grid a
     phase gradient g > pi rad/pixel aliases to g - 2 pi: exp(psi) then tilts the wave the
-    wrong way and the speckle is displaced backwards (the thick-sample failure, README). The
+    wrong way and the speckle is displaced backwards (the thick-sample failure, docs/validation.md). The
     interpolated unwrapped phase keeps the tilt. The intensity is band-limited back to the
     detector grid as with ``upsample``. Costs about s^2 times the FFT work; s = 1 is the
     paper's model, unchanged.

@@ -50,6 +50,26 @@ def angle_weights(angles_deg) -> np.ndarray:
 _BACKPROJECT_BLOCK = 1 << 16
 
 
+def ramp_filtered(sino, fft: FFT, xp=np):
+    """Ram-Lak filtered projections (angle, row, x), float32. Edge padding before the filter
+    (as tomopy does): a projection that does not fall to zero at the frame edge would
+    otherwise ring at radius FOV/2."""
+    nx = sino.shape[-1]
+    edge = nx // 2
+    sino_p = xp.pad(sino, ((0, 0), (0, 0), (edge, edge)), mode="edge")
+    npad = nx + 2 * edge
+    size = pad_len(npad)
+    if xp is np:
+        import scipy.fft as sfft
+
+        spec = sfft.rfft(sino_p, n=size, axis=-1, workers=fft.workers)
+        spec *= ramlak_filter(npad)
+        return sfft.irfft(spec, n=size, axis=-1, workers=fft.workers)[..., edge : edge + nx]
+    spec = xp.fft.rfft(sino_p, n=size, axis=-1)
+    spec *= ramlak_filter(npad, xp)
+    return xp.fft.irfft(spec, n=size, axis=-1)[..., edge : edge + nx]
+
+
 def filtered_back_projection(
     sinogram,
     angles_deg,
@@ -68,26 +88,18 @@ def filtered_back_projection(
     sino = xp.asarray(sinogram, dtype=xp.float32)
     na, nr, nx = sino.shape
     n_out = n_out or nx
-    # Edge padding before the ramp filter (as tomopy does): a projection that does not fall to
-    # zero at the frame edge would otherwise ring at radius FOV/2.
-    edge = nx // 2
-    sino_p = xp.pad(sino, ((0, 0), (0, 0), (edge, edge)), mode="edge")
-    npad = nx + 2 * edge
-    size = pad_len(npad)
-    if xp is np:
-        import scipy.fft as sfft
-
-        spec = sfft.rfft(sino_p, n=size, axis=-1, workers=fft.workers) * ramlak_filter(npad)
-        q = sfft.irfft(spec, n=size, axis=-1, workers=fft.workers)[..., edge : edge + nx]
-    else:
-        spec = xp.fft.rfft(sino_p, n=size, axis=-1) * ramlak_filter(npad, xp)
-        q = xp.fft.irfft(spec, n=size, axis=-1)[..., edge : edge + nx]
     # the angle weights folded into q, and two zero columns either side: a ray that leaves
     # the detector reads zeros there, so the loop needs no masks; dq holds the slopes of the
     # linear interpolation, q(t) = qz[i] + (t - floor t) dq[i]
     w = xp.asarray(angle_weights(angles_deg), dtype=xp.float32)
     qz = xp.zeros((na, nr, nx + 3), dtype=xp.float32)
-    qz[:, :, 1 : nx + 1] = q * w[:, None, None]
+    # filtered in batches of angles, straight into qz: the padded spectra of a whole sinogram
+    # would hold ~48 bytes per sinogram element (issue #29), a batch holds ~16 MB
+    size = pad_len(nx + 2 * (nx // 2))
+    batch = max(1, 2**21 // max(1, nr * size))
+    for start in range(0, na, batch):
+        part = slice(start, min(na, start + batch))
+        qz[part, :, 1 : nx + 1] = ramp_filtered(sino[part], fft, xp) * w[part, None, None]
     dq = qz[:, :, 1:] - qz[:, :, :-1]
     coords = (np.arange(n_out) - (n_out - 1) / 2) * pixel_size_m
     u_all = xp.asarray(np.tile(coords, n_out))  # the output pixels, row after row
@@ -119,7 +131,8 @@ def filtered_back_projection(
             else:
                 acc += xp.take(qz[a], idx, axis=1) + f * xp.take(dq[a], idx, axis=1)
     out = out.reshape(nr, n_out, n_out)
-    return out / pixel_size_m
+    out /= pixel_size_m  # in place: a second volume-sized array is the peak of a tomography task
+    return out
 
 
 def estimate_rotation_center(sinogram, angles_deg, pixel_size_m: float) -> float:
@@ -187,8 +200,12 @@ def remove_background(slices: np.ndarray, degree: int = 2) -> np.ndarray:
 
     Matter is positive in delta and beta, so the slice is handed to the background detector
     negated (it looks for matter below the background)."""
-    out = np.empty_like(slices, dtype=np.float64)
-    for i, s in enumerate(np.asarray(slices, np.float64)):
+    slices = np.asarray(slices)
+    # single-precision slices come back single (each fitted in double): a task then holds one
+    # volume-sized float32 array here, not two float64 ones
+    out = np.empty(slices.shape, np.float32 if slices.dtype == np.float32 else np.float64)
+    for i in range(slices.shape[0]):
+        s = slices[i].astype(np.float64)
         mask = bg.detect_background(-s / (np.abs(s).max() or 1.0), smooth_px=1.5, margin_px=2)
         out[i] = bg.zero_background(s, mask, degree) if mask.sum() >= 6 else s
     return out

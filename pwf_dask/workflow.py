@@ -11,16 +11,18 @@ Dask appears here and in :mod:`pwf_dask.cluster` only; the numerics stay pure fu
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 import threading
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from . import __version__, calibration, fsc, scan_io, tomography
+from . import __version__, calibration, fsc, integrity, scan_io, tomography
 from .backend import resolve_device, to_numpy
-from .cluster import Runner, worker_fft_threads
+from .cluster import Runner, check_scheduler, worker_fft_threads
 from .detector import DEFAULT_OUTLIER_SIGMA, check_threshold, repair_outliers
 from .optics import wavelength_m
 from .retrieval import METHODS, check_diffuser_drift, check_diffuser_upstream, check_solver_options, parse_alpha
@@ -32,7 +34,8 @@ MULTI_IMAGE = ("lcs", "umpa", "mist")
 
 
 def _read_corrected(g, name, index, flat, dark, corrected):
-    return scan_io.correct(g[name][index], flat, dark, corrected)
+    frame = integrity.read_checked(integrity.store_root(g), g[name], name, index)
+    return scan_io.correct(frame, flat, dark, corrected)
 
 
 def _read_reference(g, p, flat, dark, corrected, outlier_sigma):
@@ -46,13 +49,12 @@ def _scan_frames(scan_path):
 
     g = zarr.open_group(str(scan_path), mode="r")
     corrected = bool(g.attrs.get("flat_dark_corrected", False))
-    flat = g["flat"][...] if "flat" in g else None
-    dark = g["dark"][...] if "dark" in g else None
+    flat, dark = (integrity.read_checked(str(scan_path), g[n], n) if n in g else None for n in ("flat", "dark"))
     return g, flat, dark, corrected
 
 
 #: diffuser estimates of this process, one per (scan, position, options): every angle of a
-#: position shares its diffuser, so a worker fits it once (README, Diffuser estimate)
+#: position shares its diffuser, so a worker fits it once (docs/methods.md, Diffuser estimate)
 _DIFFUSERS: dict = {}
 _DIFFUSERS_LOCK = threading.Lock()
 _DIFFUSER_OPTIONS = (
@@ -108,6 +110,8 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
     out["residual_rmse"][p, a] = np.float32(res.residual_rmse)
     if "outlier_pixels" in out:  # stores made before the detector test lack it
         out["outlier_pixels"][p, a] = np.int32(res.parameters.get("outlier_pixels", 0))
+    if a == 0 and res.residual is not None and "preview_residual" in out:
+        out["preview_residual"][p] = to_numpy(res.residual).astype(np.float32)
     if "diffuser_drift_px" in res.parameters and "diffuser_drift_y_px" in out:
         out["diffuser_drift_y_px"][p, a], out["diffuser_drift_x_px"][p, a] = res.parameters["diffuser_drift_px"]
     out["iterations"][p, a] = np.int32(res.iterations)  # last: marks the projection done
@@ -192,7 +196,7 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-#: projections per warm-start chain of the retrieval stage (``angle_chain``; README, Warm
+#: projections per warm-start chain of the retrieval stage (``angle_chain``; docs/user-guide.md, Warm
 #: starts along the angles)
 DEFAULT_ANGLE_CHAIN = 8
 
@@ -255,11 +259,13 @@ def retrieve_scan(
     ``outlier_sigma`` is the detector-defect threshold of :func:`retrieve_projection`; the
     references are repaired with it before the coherence fit and the diffuser estimate.
     """
-    import zarr
-
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
-    resolve_device(device)  # fail early on --device gpu without CuPy
+    check_scheduler(scheduler)
+    # tasks may run in other working directories (distributed workers)
+    scan_path, recon_path = str(Path(scan_path).resolve()), str(Path(recon_path).resolve())
+    if "://" not in scheduler:  # tasks run on this host: fail early on --device gpu without CuPy
+        resolve_device(device)
     check_threshold(outlier_sigma)
     check_diffuser_drift(options.get("diffuser_drift", "auto"))
     angle_chains((), 1, angle_chain)  # a bad length fails here, before anything is written
@@ -340,6 +346,7 @@ def retrieve_scan(
         if fits
         else "n/a",
         "pwf_dask_version": __version__,
+        "scan_fingerprint": integrity.scan_fingerprint(g).encode(),
         "angle_chain": angle_chain,
         "diffuser_model": options.get("diffuser_model", "single-material") if method == "pwf" else "n/a",
         **{
@@ -354,48 +361,51 @@ def retrieve_scan(
         params["sample_delta_over_beta"] = mist_delta_over_beta(
             options.get("sample_material", "cellulose"), options.get("sample_delta_over_beta"), info.energy_eV
         )
-    grp = scan_io.create_reconstruction(recon_path, info, params)
-    done = grp["iterations"][...]
-    chains = [
-        c for c in angle_chains(grp["angle"][...], done.shape[0], angle_chain) if any(done[item] < 0 for item in c)
-    ]
-    missing = int((done < 0).sum())
-    print(
-        f"retrieve: {missing} of {done.size} projections to compute ({done.size - missing} already done)",
-        file=sys.stderr,
-    )
-    opts = dict(
-        method=method,
-        max_iter=max_iter,
-        tol=tol,
-        gamma=gamma,
-        alpha=alpha_c,
-        step=step,
-        precision=precision,
-        outlier_sigma=outlier_sigma,
-        **options,
-    )
-    t0 = time.perf_counter()
+    opts = dict(method=method, max_iter=max_iter, tol=tol, gamma=gamma, alpha=alpha_c, step=step)
+    opts.update(precision=precision, outlier_sigma=outlier_sigma, **options)
     own = runner is None
-    runner = runner or Runner(scheduler)
+    runner = runner or Runner(scheduler)  # a bad scheduler fails here, before anything is written
+    try:
+        return _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, coherence, angle_chain)
+    finally:
+        if own:
+            runner.close()
+
+
+def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, coherence, angle_chain) -> dict:
+    """Create or reopen the store, verify what it holds, and compute the missing projections."""
+    import zarr
+
+    created = not Path(recon_path).exists()
+    grp = scan_io.create_reconstruction(recon_path, info, params)
+    done = _verified_done(runner, recon_path, grp)
+    chains = [c for c in angle_chains(grp["angle"][...], done.shape[0], angle_chain) if any(done[i] < 0 for i in c)]
+    missing = int((done < 0).sum())
+    _say(f"retrieve: {missing} of {done.size} projections to compute ({done.size - missing} already done)")
+    t0 = time.perf_counter()
     try:
         chained = runner.map(
             _retrieve_chain,
             chains,
-            label="retrieval tasks (chains of projections)" if angle_chain > 1 else "retrieval tasks",
-            scan_path=str(scan_path),
-            recon_path=str(recon_path),
+            label="retrieve",
+            unit="projections",
+            count=partial(_count_done, recon_path, "iterations", 0),
+            total=done.size,
+            scan_path=scan_path,
+            recon_path=recon_path,
             options=opts,
             device=device,
             fft_workers=runner.fft_workers(),
             coherence=coherence,
         )
-    finally:
-        if own:
-            runner.close()
+    except Exception:
+        if created and _count_done(recon_path, "iterations", 0) == 0:
+            # a store this call made and nothing saved in it would only block the corrected re-run
+            shutil.rmtree(recon_path, ignore_errors=True)
+        raise
     results = [r for chain in chained for r in chain]
     wall = time.perf_counter() - t0
-    grp = zarr.open_group(str(recon_path), mode="r+", use_consolidated=False)
+    grp = zarr.open_group(recon_path, mode="r+", use_consolidated=False)
     if results:
         grp.attrs["retrieval_wall_s"] = wall
         grp.attrs["retrieval_task_s_mean"] = float(np.mean([r[5] for r in results]))
@@ -403,10 +413,102 @@ def retrieve_scan(
     return {"computed": len(results), "wall_s": wall, "coherence": coherence, "tasks": results}
 
 
+def _say(message: str) -> None:
+    print(message, file=sys.stderr)
+
+
+def _report_damage(stage: str, damaged: list, what: str) -> None:
+    """One line per damaged chunk (ten at most): a repair is never silent."""
+    for d in damaged[:10]:
+        _say(f"{stage}: {d}: {what}")
+    if len(damaged) > 10:
+        _say(f"{stage}: ... and {len(damaged) - 10} more damaged chunks: {what}")
+
+
+def _verified_done(runner, recon_path: str, grp) -> np.ndarray:
+    """``iterations`` as trusted: a projection marked done counts only if its chunks are all
+    there and decode (checksums; :mod:`pwf_dask.integrity`); any other is named, marked not
+    done and recomputed. The decode pass reads what is stored once (on a resume)."""
+    done, damaged = integrity.read_bookkeeping(recon_path, grp, "iterations")
+    _report_damage("retrieve", damaged, "its projection is recomputed")
+    for (p, a), lost in integrity.missing_projection_chunks(recon_path, grp, done).items():
+        name, index = lost[0]
+        _say(f"retrieve: {recon_path}: {name} chunk {index} of projection ({p}, {a}) is missing: recomputed")
+        integrity.reset_projection(recon_path, grp, p, a)
+        done[p, a] = -1
+    stored = [integrity.projection_chunks(grp, int(p), int(a)) for p, a in zip(*np.nonzero(done >= 0))]
+    for fault in _decode_all(runner, recon_path, "projection", stored):
+        p, a = fault.index[:2]
+        _say(f"retrieve: {fault} (projection ({p}, {a})): recomputed")
+        integrity.reset_projection(recon_path, grp, p, a)
+        done[p, a] = -1
+    return done
+
+
+def _decode_task(chunk_lists, *, recon_path):
+    """The first fault of each list of (array, chunk index), if any."""
+    import zarr
+
+    g = zarr.open_group(recon_path, mode="r", use_consolidated=False)
+    faults = []
+    for chunks in chunk_lists:
+        for name, index in chunks:
+            try:
+                integrity.read_chunk(recon_path, g[name], name, index)
+            except integrity.DamagedChunk as exc:
+                faults.append(exc)
+                break
+    return faults
+
+
+def _decode_all(runner, recon_path: str, what: str, chunk_lists: list) -> list:
+    """Decode every chunk of ``chunk_lists`` (one list per projection or row block) on the
+    scheduler, in batches of 16 lists; the first fault of each list that has one."""
+    if not chunk_lists:
+        return []
+    batches = [chunk_lists[i : i + 16] for i in range(0, len(chunk_lists), 16)]
+    found = runner.map(_decode_task, batches, label="verify", unit=f"{what} batches", recon_path=recon_path)
+    return [f for batch in found for f in batch]
+
+
+def _count_done(recon_path: str, name: str, done_from: int) -> int:
+    """Entries of the store's bookkeeping array ``name`` at or above ``done_from`` (progress)."""
+    import zarr
+
+    group = zarr.open_group(recon_path, mode="r", use_consolidated=False)
+    return int((group[name][...] >= done_from).sum())
+
+
 # --- tomography -------------------------------------------------------------------------
 
 
+def _read_sinogram(g, recon_path, name, p, rows, b) -> tuple[np.ndarray | None, list]:
+    """Row block ``b`` of position p's sinogram; or None and the damaged chunks (named, removed,
+    their projections marked not done): a chunk is never read as its fill value or garbage."""
+    arr = g[name]
+    idx = [(p, a, b, 0) for a in range(arr.shape[1])]
+    damaged = [
+        integrity.DamagedChunk(recon_path, name, i, "missing")
+        for i in idx
+        if not integrity.chunk_path(recon_path, name, i).exists()
+    ]
+    if not damaged:
+        try:
+            return arr[p, :, rows, :], []
+        except Exception:
+            for i in idx:
+                try:
+                    integrity.read_chunk(recon_path, arr, name, i)
+                except integrity.DamagedChunk as exc:
+                    damaged.append(exc)
+    for d in damaged:
+        integrity.reset_projection(recon_path, g, d.index[0], d.index[1])
+    return None, damaged
+
+
 def _tomo_task(item, *, recon_path, center_m, device, fft_workers):
+    """FBP of one (position, row block); returns the damaged chunks it found (then nothing is
+    written and the block stays not done)."""
     import zarr
 
     from .backend import FFT
@@ -421,15 +523,25 @@ def _tomo_task(item, *, recon_path, center_m, device, fft_workers):
     angles = g["angle"][...]
     pix = float(g.attrs["pixel_size_m"])
     wl = wavelength_m(float(g.attrs["energy_eV"]))
-    out = {}
-    for name in ("phase", "attenuation"):
-        sino = xp.asarray(g[name][p, :, rows, :])
-        out[name] = to_numpy(tomography.filtered_back_projection(sino, angles, pix, center_m, fft=fft))
-    delta, beta = tomography.to_refractive_index(out["phase"], out["attenuation"], wl)
-    g["delta"][p, rows] = tomography.remove_background(delta).astype(np.float32)
-    g["beta"][p, rows] = tomography.remove_background(beta).astype(np.float32)
+    sinograms = {}
+    for name in ("phase", "attenuation"):  # both checked before anything is written
+        sinograms[name], damaged = _read_sinogram(g, str(recon_path), name, p, rows, b)
+        if damaged:
+            return [str(d) for d in damaged]
+    # one volume at a time: delta is written before beta's FBP (the task's peak, issue #29)
+    for name, out, sign in (("phase", "delta", -1.0), ("attenuation", "beta", 1.0)):
+        fbp = to_numpy(
+            tomography.filtered_back_projection(xp.asarray(sinograms.pop(name)), angles, pix, center_m, fft=fft)
+        )
+        fbp *= np.float32(sign * wl / (2 * np.pi))  # tomography.to_refractive_index, in place
+        g[out][p, rows] = tomography.remove_background(fbp).astype(np.float32, copy=False)
+        del fbp
     g["tomo_done"][p, b] = 1
-    return p, b
+    return []
+
+
+class RetrievalDamaged(scan_io.ScanError):
+    """Tomography found retrieved chunks missing or damaged; they are marked not done."""
 
 
 def rotation_center(recon_path) -> float:
@@ -441,7 +553,7 @@ def rotation_center(recon_path) -> float:
     ny = g["phase"].shape[2]
     rb = g["phase"].chunks[2]
     mid = (ny // 2) // rb * rb
-    sino = -g["phase"][0, :, mid : mid + rb, :]
+    sino = -integrity.read_checked(recon_path, g["phase"], "phase", (0, slice(None), slice(mid, mid + rb)))
     angles, pix = g["angle"][...], float(g.attrs["pixel_size_m"])
     c = tomography.rotation_center_from_opposite(sino, angles, pix)
     return c if c is not None else tomography.estimate_rotation_center(sino, angles, pix)
@@ -458,57 +570,38 @@ def tomo_scan(
     """Tomography stage: FBP of phase and attenuation per (position, row block) -> delta, beta."""
     import zarr
 
-    path = str(recon_path)
+    check_scheduler(scheduler)
+    path = str(Path(recon_path).resolve())
     if not Path(path).exists():
         raise scan_io.ScanError(f"{path}: no such reconstruction store; run 'pwf-dask retrieve' first")
     g = zarr.open_group(path, mode="r+", use_consolidated=False)
     if "phase" not in g:
         raise scan_io.ScanError(f"{path}: not a reconstruction store (no 'phase')")
-    missing = int((g["iterations"][...] < 0).sum())
-    if missing:
-        raise scan_io.ScanError(
-            f"{path}: retrieval incomplete ({missing} projections missing); rerun 'pwf-dask retrieve'"
-        )
-    npos, nang, ny, nx = g["phase"].shape
-    if nang < 2:
-        raise scan_io.ScanError(f"{path}: one angle; tomography needs >= 2 (its phase and attenuation are complete)")
-    rb = g["phase"].chunks[2]
+    _check_retrieved(path, g)
     estimated = center_m is None
     if estimated:
-        center_m = rotation_center(path)
-    if "delta" not in g or float(g.attrs.get("rotation_center_m", np.nan)) != float(center_m):
-        p = float(g.attrs["pixel_size_m"])
-        coords = (np.arange(nx) - (nx - 1) / 2) * p
-        scan_io._create(g, "v", (nx,), (nx,), ("v",), "float64", 0.0, coords)
-        scan_io._create(g, "u", (nx,), (nx,), ("u",), "float64", 0.0, coords)
-        for name in ("delta", "beta"):
-            scan_io._create(
-                g, name, (npos, ny, nx, nx), (1, rb, nx, nx), ("position", "y", "v", "u"), "float32", np.nan
-            )
-        nblocks = -(-ny // rb)
-        scan_io._create(g, "tomo_done", (npos, nblocks), (1, 1), ("position", "row_block"), "int8", 0)
-        g.attrs.update(
-            {
-                "rotation_center_m": float(center_m),
-                "rotation_center_estimated": estimated,
-                "filter": "ram-lak",
-                "background_removal": "quadratic surface per slice",
-            }
-        )
-    done = g["tomo_done"][...]
-    todo = [(int(p), int(b)) for p, b in zip(*np.nonzero(done == 0))]
-    print(
-        f"tomo: rotation centre {center_m * 1e6:+.2f} um ({'estimated' if estimated else 'given'}); "
-        f"{len(todo)} of {done.size} slice blocks to compute",
-        file=sys.stderr,
-    )
+        try:
+            center_m = rotation_center(path)
+        except integrity.DamagedChunk as exc:
+            integrity.reset_projection(path, g, exc.index[0], exc.index[1])
+            raise RetrievalDamaged(
+                f"{exc} (projection {exc.index[:2]}); marked not done: rerun 'pwf-dask retrieve' (or 'run')"
+            ) from None
+    _create_tomograms(g, float(center_m), estimated)
     own = runner is None
     runner = runner or Runner(scheduler)
     try:
-        runner.map(
+        done = _verified_blocks(runner, path, g)
+        todo = [(int(p), int(b)) for p, b in zip(*np.nonzero(done == 0))]
+        where = "estimated" if estimated else "given"
+        _say(f"tomo: rotation centre {center_m * 1e6:+.2f} µm ({where}); {len(todo)} of {done.size} blocks to compute")
+        found = runner.map(
             _tomo_task,
             todo,
-            label="tomography tasks",
+            label="tomo",
+            unit="slice blocks",
+            count=partial(_count_done, path, "tomo_done", 1),
+            total=done.size,
             recon_path=path,
             center_m=float(center_m),
             device=device,
@@ -517,21 +610,88 @@ def tomo_scan(
     finally:
         if own:
             runner.close()
+    damaged = [d for block in found for d in block]
+    if damaged:
+        raise RetrievalDamaged(
+            f"{len(damaged)} retrieved chunks missing or damaged (first: {damaged[0]}); their projections are "
+            "marked not done: rerun 'pwf-dask retrieve' (or 'run') to recompute them"
+        )
     scan_io.consolidate(path)
     return {"computed": len(todo), "rotation_center_m": float(center_m)}
+
+
+def _check_retrieved(path: str, g) -> None:
+    """Every projection retrieved and its chunks there; a lost one is marked not done and named."""
+    done, damaged = integrity.read_bookkeeping(path, g, "iterations")
+    lost = integrity.missing_projection_chunks(path, g, done)
+    for p, a in lost:
+        integrity.reset_projection(path, g, p, a)
+    if damaged or lost:
+        first = str(damaged[0]) if damaged else f"{lost[next(iter(lost))][0][0]} chunk of projection {next(iter(lost))}"
+        raise RetrievalDamaged(
+            f"{path}: {len(damaged) + len(lost)} retrieved projections missing or damaged (first: {first}); "
+            "marked not done: rerun 'pwf-dask retrieve' (or 'run') to recompute them"
+        )
+    missing = int((done < 0).sum())
+    if missing:
+        raise scan_io.ScanError(
+            f"{path}: retrieval incomplete ({missing} projections missing); rerun 'pwf-dask retrieve'"
+        )
+    if g["phase"].shape[1] < 2:
+        raise scan_io.ScanError(f"{path}: one angle; tomography needs >= 2 (its phase and attenuation are complete)")
+
+
+def _create_tomograms(g, center_m: float, estimated: bool) -> None:
+    """The delta/beta arrays and their bookkeeping, new unless they exist for this centre (their
+    attributes are written last: an interrupted creation is made again)."""
+    if "delta" in g and float(g.attrs.get("rotation_center_m", np.nan)) == center_m:
+        return
+    npos, _, ny, nx = g["phase"].shape
+    rb = g["phase"].chunks[2]
+    coords = (np.arange(nx) - (nx - 1) / 2) * float(g.attrs["pixel_size_m"])
+    scan_io._create(g, "v", (nx,), (nx,), ("v",), "float64", 0.0, coords)
+    scan_io._create(g, "u", (nx,), (nx,), ("u",), "float64", 0.0, coords)
+    for name in ("delta", "beta"):
+        scan_io._create(g, name, (npos, ny, nx, nx), (1, rb, nx, nx), ("position", "y", "v", "u"), "float32", np.nan)
+    scan_io._create(g, "tomo_done", (npos, -(-ny // rb)), (1, 1), ("position", "row_block"), "int8", 0)
+    g.attrs.update(
+        {
+            "rotation_center_m": center_m,
+            "rotation_center_estimated": estimated,
+            "filter": "ram-lak",
+            "background_removal": "quadratic surface per slice",
+        }
+    )
+
+
+def _verified_blocks(runner, path: str, g) -> np.ndarray:
+    """``tomo_done`` as trusted: a block marked done counts only if its delta/beta chunks are
+    there and decode; any other is named, marked not done and recomputed."""
+    done, damaged = integrity.read_bookkeeping(path, g, "tomo_done")
+    _report_damage("tomo", damaged, "its row block is recomputed")
+    for p, b in integrity.missing_block_chunks(path, done):
+        _say(f"tomo: {path}: delta/beta chunk of row block ({p}, {b}) is missing: recomputed")
+        integrity.reset_block(path, g, p, b)
+        done[p, b] = 0
+    stored = [integrity.block_chunks(int(p), int(b)) for p, b in zip(*np.nonzero(done >= 1))]
+    for fault in _decode_all(runner, path, "row block", stored):
+        _say(f"tomo: {fault}: its row block is recomputed")
+        integrity.reset_block(path, g, *fault.index[:2])
+        done[fault.index[:2]] = 0
+    return done
 
 
 # --- FSC --------------------------------------------------------------------------------
 
 
-def _even_odd_volumes(g, name, p, center_m, wl, sign):
+def _even_odd_volumes(path, g, name, p, center_m, wl, sign):
     angles = g["angle"][...]
     order = np.argsort(angles)
     halves = (np.sort(order[0::2]), np.sort(order[1::2]))
     pix = float(g.attrs["pixel_size_m"])
     vols = []
     for idx in halves:
-        sino = g[name][p][idx]
+        sino = integrity.read_checked(path, g[name], name, p)[idx]
         vol = tomography.filtered_back_projection(sino, angles[idx], pix, center_m)
         vols.append(tomography.remove_background(sign * wl / (2 * np.pi) * vol))
     return vols
@@ -571,13 +731,14 @@ def fsc_scan(recon_path, *, split: str = "auto", criterion: str = "1/4", pairs: 
         )
         for i, j in chosen:
             for name in ("delta", "beta"):
-                f, c, n = fsc.fourier_shell_correlation(g[name][i], g[name][j], pix)
+                vi, vj = (integrity.read_checked(path, g[name], name, k) for k in (i, j))
+                f, c, n = fsc.fourier_shell_correlation(vi, vj, pix)
                 curves[name].append(c)
             labels.append(f"positions {i}-{j}")
     elif split == "even-odd":
         for p in range(npos):
             for name, src, sign in (("delta", "phase", -1.0), ("beta", "attenuation", 1.0)):
-                a, b = _even_odd_volumes(g, src, p, center, wl, sign)
+                a, b = _even_odd_volumes(path, g, src, p, center, wl, sign)
                 f, c, n = fsc.fourier_shell_correlation(a, b, pix)
                 curves[name].append(c)
             labels.append(f"position {p} even-odd angles")
@@ -647,14 +808,28 @@ def run_scan(
     device: str = "cpu",
     split: str = "auto",
     center_m: float | None = None,
+    runner: Runner | None = None,
     **retrieve_options,
 ) -> dict:
     """All stages on one scheduler connection: retrieve, tomo, fsc. A single-angle scan (a
     radiograph) stops after retrieval: ``tomo`` and ``fsc`` are then None."""
-    with Runner(scheduler) as runner:
+    own = runner is None
+    runner = runner or Runner(scheduler)
+    try:
         r = retrieve_scan(scan_path, recon_path, scheduler=scheduler, device=device, runner=runner, **retrieve_options)
         if _n_angles(recon_path) < 2:
             return {"retrieve": r, "tomo": None, "fsc": None}
-        t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner)
+        try:
+            t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner)
+        except RetrievalDamaged as exc:  # recompute what tomography found damaged, once
+            _say(f"run: {exc}; recomputing")
+            again = retrieve_scan(
+                scan_path, recon_path, scheduler=scheduler, device=device, runner=runner, **retrieve_options
+            )
+            r["computed"] += again["computed"]
+            t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner)
+    finally:
+        if own:
+            runner.close()
     f = fsc_scan(recon_path, split=split)
     return {"retrieve": r, "tomo": t, "fsc": f}

@@ -126,3 +126,121 @@ def test_ctrl_c_during_run_says_what_is_saved_and_the_rerun_completes(tmp_path):
     assert cli.main(["retrieve", str(scan), str(recon), "--max-iter", "100"]) == 0
     assert (zarr.open_group(str(recon), mode="r")["iterations"][...] >= 0).all()
     assert np.isfinite(zarr.open_group(str(recon), mode="r")["phase"][...]).all()
+
+
+def test_every_option_has_help_and_defaults_are_shown(capsys):
+    """Issue #28: no option or positional without a text; --help shows the defaults."""
+    import argparse
+
+    parser = cli.build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    for name, sub in commands.items():
+        for action in sub._actions:
+            if not isinstance(action, argparse._HelpAction):
+                assert action.help, (name, action.dest)
+    with pytest.raises(SystemExit):
+        cli.main(["run", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default: 2000)" in text and "threads (default)" in text and "(default: auto)" in text
+
+
+def test_a_nan_frame_is_refused_naming_its_position_and_angle(tmp_path, capsys):
+    """Issue #28: the refusal names the frame, in one line with exit status 2."""
+    import numpy as np
+    import zarr
+
+    scan = tmp_path / "scan.zarr"
+    args = ["simulate", str(scan), "--preset", "demo", "--shape", "32", "32", "--angles", "4", "--corrected"]
+    assert cli.main(args) == 0
+    g = zarr.open_group(str(scan), mode="r+")
+    frame = g["projections"][1, 2]
+    frame[5, 6] = np.nan
+    g["projections"][1, 2] = frame
+    capsys.readouterr()
+    assert cli.main(["retrieve", str(scan), str(tmp_path / "recon.zarr")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "projections at position 1, angle 2 (120 deg) has non-finite values" in err[0], err
+    assert not (tmp_path / "recon.zarr").exists()
+
+
+@pytest.fixture(scope="module")
+def small_recon(tmp_path_factory):
+    """A 32 x 48, 4-angle, K = 2 demo scan through `run` (20 iterations: values do not matter)."""
+    d = tmp_path_factory.mktemp("small")
+    scan, recon = d / "scan.zarr", d / "recon.zarr"
+    assert cli.main(["simulate", str(scan), "--preset", "demo", "--shape", "32", "48", "--angles", "4"]) == 0
+    assert cli.main(["run", str(scan), str(recon), "--max-iter", "20", "--figures", str(d / "figs")]) == 0
+    return recon
+
+
+def test_run_writes_the_preview_figures_with_the_real_residual(small_recon):
+    """Issue #28: `run` ends with `preview`; the residual panel shows the stored residual."""
+    import numpy as np
+    import xarray as xr
+
+    figs = small_recon.parent / "figs"
+    assert {p.name for p in figs.iterdir()} == {"projection.png", "tomograms.png", "fsc.png"}
+    ds = xr.open_zarr(small_recon)
+    residual = ds["preview_residual"][0].values
+    rmse = float(ds["residual_rmse"][0, 0])
+    assert np.isfinite(residual).all() and np.sqrt(np.mean(residual**2)) == pytest.approx(rmse, rel=1e-3)
+    assert ds["preview_residual"].attrs["units"] == "percent"
+
+
+def test_preview_into_a_chosen_folder(small_recon, tmp_path, capsys):
+    assert cli.main(["preview", str(small_recon), str(tmp_path / "p")]) == 0
+    assert sorted(p.name for p in (tmp_path / "p").iterdir()) == ["fsc.png", "projection.png", "tomograms.png"]
+
+
+@pytest.mark.parametrize("layout", ["stack", "slices"])
+def test_export_tiff_values_and_voxel_size_match_the_store(small_recon, tmp_path, capsys, layout):
+    """Issue #28: float32 TIFF, values equal to the store's, the voxel size in um in the
+    resolution tags (what Fiji reads), and existing files are never written over."""
+    import numpy as np
+    import tifffile
+    import xarray as xr
+
+    ds = xr.open_zarr(small_recon)
+    out = tmp_path / "tif"
+    assert cli.main(["export", str(small_recon), str(out), "--format", "tiff", "--layout", layout]) == 0
+    voxel_um = ds.attrs["pixel_size_m"] * 1e6
+    for name in ("delta", "beta"):
+        for p in range(2):
+            if layout == "stack":
+                f = out / f"{name}_position{p}.tif"
+                got = tifffile.imread(f)
+            else:
+                f = out / f"{name}_position{p}" / "y0010.tif"
+                got = tifffile.imread(f)[None]
+            want = ds[name][p].values if layout == "stack" else ds[name][p, 10:11].values
+            assert got.dtype == np.float32
+            np.testing.assert_array_equal(got, want.astype(np.float32))
+            with tifffile.TiffFile(f) as tif:
+                num, den = tif.pages[0].tags["XResolution"].value
+                assert num / den == pytest.approx(1 / voxel_um, rel=1e-5)
+                assert tif.imagej_metadata["unit"] == "um"
+    before = sorted(out.rglob("*"))
+    stamp = before[0].stat().st_mtime_ns
+    assert cli.main(["export", str(small_recon), str(out), "--layout", layout]) == 2
+    assert "already exists" in capsys.readouterr().err and sorted(out.rglob("*")) == before
+    assert before[0].stat().st_mtime_ns == stamp
+
+
+def test_a_run_failing_before_its_first_projection_leaves_no_store(tmp_path, capsys, monkeypatch):
+    """Issue #28: a store with nothing in it would refuse the corrected re-run; a store with
+    saved projections is kept for the resume."""
+    from pwf_dask import workflow
+
+    scan, recon = tmp_path / "scan.zarr", tmp_path / "recon.zarr"
+    assert cli.main(["simulate", str(scan), "--preset", "demo", "--shape", "32", "32", "--angles", "2"]) == 0
+
+    def lost(*args, **kwargs):
+        raise RuntimeError("device lost")
+
+    monkeypatch.setattr(workflow, "_retrieve_chain", lost)
+    capsys.readouterr()
+    assert cli.main(["retrieve", str(scan), str(recon), "--max-iter", "10"]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "pwf-dask retrieve: error: device lost"
+    assert not recon.exists()
+    monkeypatch.undo()
+    assert cli.main(["retrieve", str(scan), str(recon), "--max-iter", "10"]) == 0

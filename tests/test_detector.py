@@ -80,7 +80,7 @@ def test_stacks_are_repaired_frame_by_frame(sim):
 
 def test_pwf_with_zingers_matches_the_clean_result(sim):
     """65 zingers of 10x the mean in each image (1e-3 of the pixels): 0.99 relative phase error
-    with every pixel fitted, the clean image's error when they are left out (README)."""
+    with every pixel fitted, the clean image's error when they are left out (docs/validation.md)."""
     clean = relative_phase_error(retrieve_projection(sim.sample, sim.reference, **kwargs(sim)), sim)
     sample, truth_s = with_defects(sim.sample, 3, 65, 0, amplitude=10.0)
     reference, truth_r = with_defects(sim.reference, 4, 65, 0, amplitude=10.0)

@@ -159,6 +159,8 @@ def _tiff_scan(tmp_path, ds, n_angles=None, low_frame=False):
         ("no_source", "give --projections and --reference"),
         ("flat_at_dark", "not above the dark"),
         ("upstream_with_l1", "needs sample_diffuser_distance_m = 0"),
+        ("energy_in_kev", "energy_eV = 10 is outside"),
+        ("pixel_in_um", "pixel_size_m = 0.65 is outside"),
     ],
 )
 def test_bad_input_is_refused_in_one_line_and_writes_nothing(source_scan, tmp_path, capsys, case, message):
@@ -183,10 +185,26 @@ def test_bad_input_is_refused_in_one_line_and_writes_nothing(source_scan, tmp_pa
         src += ["--flat", str(tmp_path / "flat.tif")]
     elif case == "upstream_with_l1":  # GEOMETRY_ARGS has L1 = 3 mm
         src += ["--diffuser-upstream-m", "5e-3"]
-    assert cli.main(["ingest", str(out), *src, *angles, *GEOMETRY_ARGS]) != 0
+    geometry = list(GEOMETRY_ARGS)
+    if case == "energy_in_kev":  # a unit slip: keV for eV
+        geometry[geometry.index("--energy-eV") + 1] = "10"
+    elif case == "pixel_in_um":  # um for m
+        geometry[geometry.index("--pixel-size-m") + 1] = "0.65"
+    assert cli.main(["ingest", str(out), *src, *angles, *geometry]) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.startswith("pwf-dask ingest: error:") and message in err, err
     if case == "exists":
         assert (out / "keep.txt").read_text() == "a user's file"
     else:
         assert not out.exists()
+
+
+def test_raw_counts_without_flat_or_dark_are_ingested_with_a_one_line_warning(source_scan, tmp_path, capsys):
+    """Issue #28: nothing says the counts carry the detector's dark offset unless we do."""
+    ds, _ = source_scan
+    src = _tiff_scan(tmp_path, ds)[:4]  # projections and reference, no dark
+    out = tmp_path / "out.zarr"
+    assert cli.main(["ingest", str(out), *src, "--angles", "0", "180", *GEOMETRY_ARGS]) == 0
+    err = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert len(err) == 1 and err[0].startswith("pwf-dask: warning: no flat and no dark"), err
+    assert scan_io.open_scan(out)[1].has_dark is False

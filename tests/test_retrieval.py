@@ -76,7 +76,7 @@ def test_largest_bead_phase_contrast_within_10_percent(scene):
 
 def test_zero_phase_diffuser_overshoots_the_bead(scene):
     """Where the paper's zero-phase diffuser estimate fails: the same scene with the paper's
-    alpha gives a bead phase contrast > 15 % too deep (README, Where PWF fails)."""
+    alpha gives a bead phase contrast > 15 % too deep (docs/validation.md, Where PWF fails)."""
     sim, _ = scene
     res = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, diffuser_model="zero-phase", alpha="paper"))
     bead = max(sim.phantom.spheres, key=lambda s: s.radius_m)
@@ -111,7 +111,7 @@ def test_attenuation_gain_within_15_percent(scene):
 def test_fits_data_to_near_the_noise_level(scene):
     """Residual at the photon noise, not far below it (over-fitting) nor above (a model that
     cannot hold the scene): the single-material diffuser leaves 0.95x the noise (0.932 %);
-    the paper's zero-phase diffuser left 1.08x, with the beads over-fitted (+28 %, README)."""
+    the paper's zero-phase diffuser left 1.08x, with the beads over-fitted (+28 %, docs/validation.md)."""
     sim, res = scene
     noise_pct = 100 * np.sqrt(np.mean(sim.sample) / sim.photons) / np.mean(sim.reference)
     assert 0.9 * noise_pct < res.residual_rmse < 1.45 * noise_pct
@@ -127,7 +127,8 @@ def test_background_is_zero(scene):
     strict=True,
     reason="known: on a 35 pi glass rod at 2 um pixels the phase block converges ~90x slower than at the "
     "paper's 0.65 um (gain 0.01) and its edges jump ~15 rad in one pixel; phase_scale='auto' moves it into a "
-    "wrong basin, the field on a 2x or 3x grid gives 0.04 (README, Where PWF fails); 30 pi at 0.65 um holds",
+    "wrong basin, the field on a 2x or 3x grid gives 0.04 (docs/validation.md, Where PWF fails); "
+    "30 pi at 0.65 um holds",
 )
 def test_thick_scene_without_wrapping():
     """A 420 um soda-lime glass rod: > 30 pi of phase, recovered without wrapping."""

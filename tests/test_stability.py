@@ -151,7 +151,7 @@ def test_dark_field_of_a_scene_acts_behind_the_sample_only():
 def test_dark_field_fails_pwf_and_not_umpa_k12():
     """PWF's model has no visibility term: the lost speckle contrast behind a scattering
     sample comes back as extra phase (gain well above 1), while UMPA's window correlation
-    with 12 images finds the shifts whatever the contrast (README, Stability map). Measured
+    with 12 images finds the shifts whatever the contrast (docs/validation.md, Stability map). Measured
     with the paper's alpha; the default's (Im 0.05) damps the extra phase to an error of 0.22,
     under the map's threshold."""
     methods = [stability.METHOD_RUNS[1], stability.METHOD_RUNS[3]]

@@ -12,5 +12,7 @@ def test_ruff_clean():
     if not Path(ruff).exists():
         pytest.skip("ruff not installed")
     root = Path(__file__).parents[1]
-    out = subprocess.run([ruff, "check", "pwf_dask", "tests", "workflows"], cwd=root, capture_output=True, text=True)
+    out = subprocess.run(
+        [ruff, "check", "pwf_dask", "tests", "workflows", "deploy"], cwd=root, capture_output=True, text=True
+    )
     assert out.returncode == 0, out.stdout

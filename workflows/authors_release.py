@@ -1,4 +1,4 @@
-"""PWF as pwf-dask runs it against the choices of the authors' released code (README, Authors' code).
+"""PWF as pwf-dask runs it against the choices of the authors' released code (docs/validation.md' code).
 
 The authors' MATLAB release (kyeoreh/preconditioned_Wirtinger_flow, ``PWF.m``) differs from
 pwf-dask's defaults in the diffuser estimate (zero phase), the normalisation N_t = (max|t|^2)^2,

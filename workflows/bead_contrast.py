@@ -1,4 +1,4 @@
-"""Bead contrast against alpha on the demo scene's projections (README, Regularization weight).
+"""Bead contrast against alpha on the demo scene's projections (docs/methods.md, Regularization weight).
 
 The demo scan's geometry (48 x 128 px, the paper's optics, sub-pixel SiC sandpaper, 1e4 ph/px,
 the rotation axis 2.5 px off centre) and phantom (seed 0), at six angles; every alpha sees the

@@ -1,4 +1,4 @@
-"""PWF with detector defects (zingers) against the same scene without them (README, Detector defects).
+"""PWF with detector defects (zingers) against the same scene without them (docs/validation.md, Detector defects).
 
 A 256 x 256 projection (the paper's geometry, sub-pixel sandpaper, 1e4 photons/pixel, seed 1).
 Single-pixel spikes of a given height (in units of the image mean) are added at random places

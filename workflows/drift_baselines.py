@@ -1,4 +1,4 @@
-"""The speckle-tracking baselines under diffuser drift, uncorrected and corrected (README, Diffuser drift).
+"""The speckle-tracking baselines under diffuser drift, uncorrected and corrected (docs/validation.md, Diffuser drift).
 
 A 256 x 256 projection (the paper's geometry, sub-pixel sandpaper, 1e4 photons/pixel, the
 default cellulose rod with glass beads): the sample frames are taken through the diffuser

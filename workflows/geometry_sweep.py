@@ -1,4 +1,4 @@
-"""PWF on beamline geometries other than the paper's (README, Where PWF fails: other geometries).
+"""PWF on beamline geometries other than the paper's (docs/validation.md, Where PWF fails: other geometries).
 
 One 256 x 256 projection (sub-pixel SiC sandpaper, the default cellulose rod with glass beads,
 1e4 photons/pixel, seed 1) in the paper's optics with one thing changed at a time: photon

@@ -1,0 +1,69 @@
+"""`pwf-dask estimate`: memory and time per stage, predicted from a scan's metadata (issue #29)."""
+
+import numpy as np
+import pytest
+
+from pwf_dask import cli, estimate, scan_io
+
+SPEEDS = estimate.Speeds(fft_s=0.01, fbp_s_per_element=2e-9)
+
+
+def _metadata_scan(path, shape=(2160, 2560), angles=801, positions=1):
+    """A scan store of the paper's size holding only its metadata (no frame is written)."""
+    attrs = {
+        "energy_eV": 1e4,
+        "pixel_size_m": 0.65e-6,
+        "sample_diffuser_distance_m": 3e-3,
+        "diffuser_detector_distance_m": 0.02,
+        "flat_dark_corrected": True,
+    }
+    scan_io.create_scan(
+        path,
+        n_positions=positions,
+        angles_deg=np.linspace(0, 180, angles),
+        shape=shape,
+        pixel_size_m=0.65e-6,
+        dtype="uint16",
+        attrs=attrs,
+    )
+    scan_io.consolidate(path)
+    return path
+
+
+def test_memory_grows_with_what_each_task_holds():
+    base = estimate.estimate_scan((512, 512), 181, 2, speeds=SPEEDS)
+    wide = estimate.estimate_scan((512, 1024), 181, 2, speeds=SPEEDS)
+    retrieve, tomo, fsc = (s.peak_mb_per_worker - estimate.WORKER_BASE_MB for s in base)
+    retrieve2, tomo2, fsc2 = (s.peak_mb_per_worker - estimate.WORKER_BASE_MB for s in wide)
+    # retrieval: the padded grid (~2x pixels); FSC: voxels of a slice grow as nx^2
+    assert 1.8 < (retrieve2 - estimate.RETRIEVAL_BASE_MB) / (retrieve - estimate.RETRIEVAL_BASE_MB) < 2.1
+    assert fsc2 / fsc == pytest.approx(4.0)
+    finer = estimate.estimate_scan((512, 512), 181, 2, field_upsample=2, speeds=SPEEDS)
+    assert finer[0].peak_mb_per_worker > base[0].peak_mb_per_worker
+    assert tomo2 > tomo
+
+
+def test_time_divides_over_workers_and_counts_every_projection():
+    one = estimate.estimate_scan((256, 256), 100, 2, workers=1, iterations=200, speeds=SPEEDS)
+    eight = estimate.estimate_scan((256, 256), 100, 2, workers=8, iterations=200, speeds=SPEEDS)
+    assert one[0].tasks == 200 and one[0].seconds == pytest.approx(200 * 200 * 16.0 * 0.01)
+    assert eight[0].seconds == pytest.approx(one[0].seconds / 8)
+    assert one[1].seconds == pytest.approx(2 * 2e-9 * 100 * 256 * 256 * 256 * 2)
+
+
+def test_estimate_command_prints_each_stage_and_warns_when_a_stage_cannot_fit(tmp_path, capsys):
+    """The paper's scan: the FSC of two whole 2160 x 2560^2 tomograms needs more memory than a
+    workstation has, which the estimate says before anything runs."""
+    scan = _metadata_scan(tmp_path / "paper.zarr")
+    assert cli.main(["estimate", str(scan), "--workers", "8"]) == 0
+    out = capsys.readouterr().out
+    for stage in ("retrieve", "tomo", "fsc"):
+        assert f"\n{stage}" in out
+    assert "801 angles x 2160 x 2560" in out
+    assert "warning: fsc needs" in out
+
+
+def test_estimate_refuses_bad_numbers(tmp_path, capsys):
+    scan = _metadata_scan(tmp_path / "s.zarr", shape=(64, 64), angles=10)
+    assert cli.main(["estimate", str(scan), "--workers", "0"]) == 2
+    assert "--workers" in capsys.readouterr().err

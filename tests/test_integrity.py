@@ -1,0 +1,355 @@
+"""Stores that cannot lie (issue #29): every fault of the issue reproduced on a small scan.
+
+In each, the final store is identical to an uninterrupted run, or the run is refused in one
+line with nothing written.
+"""
+
+import shutil
+import sys
+
+import cloudpickle
+import numpy as np
+import pytest
+import zarr
+
+from pwf_dask import cli, integrity, scan_io
+from pwf_dask.simulation import simulate_scan
+
+RUN = ["--max-iter", "15"]
+COMPARED = ("phase", "attenuation", "iterations", "delta", "beta", "fsc_delta")
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """A 32 x 48, 6-angle, K = 2 scan and its uninterrupted reconstruction."""
+    d = tmp_path_factory.mktemp("integrity")
+    scan, recon = d / "scan.zarr", d / "recon.zarr"
+    simulate_scan(scan, preset="demo", shape=(32, 48), angles=6, positions=2, seed=1, progress=False)
+    assert cli.main(["run", str(scan), str(recon), *RUN, "--figures", str(d / "figs")]) == 0
+    return scan, recon
+
+
+def _copy(finished, tmp_path):
+    scan, recon = finished
+    shutil.copytree(recon, tmp_path / "recon.zarr")
+    return scan, tmp_path / "recon.zarr"
+
+
+def assert_same_store(a, b):
+    ga, gb = zarr.open_group(str(a), mode="r"), zarr.open_group(str(b), mode="r")
+    for name in COMPARED:
+        np.testing.assert_array_equal(ga[name][...], gb[name][...], err_msg=name)
+
+
+def _rerun(scan, recon, tmp_path, capsys):
+    capsys.readouterr()
+    assert cli.main(["run", str(scan), str(recon), *RUN, "--figures", str(tmp_path / "figs")]) == 0
+    return capsys.readouterr().err
+
+
+def _flip(path, n=16):
+    data = bytearray(path.read_bytes())
+    for k in range(n):
+        data[len(data) // 3 + k] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def test_chunks_carry_checksums(finished):
+    g = zarr.open_group(str(finished[1]), mode="r")
+    assert all(integrity.has_checksums(arr) for _, arr in g.arrays())
+
+
+@pytest.mark.parametrize(
+    "damage",
+    ["deleted", "flipped", "truncated", "garbage"],
+)
+def test_damaged_phase_chunk_is_named_and_recomputed(finished, tmp_path, capsys, damage):
+    """Issue #29: a deleted chunk read as NaN (FSC 31 µm), a flipped one as 3.4e38; now each
+    is named by `verify` and by `run`, which recomputes its projection to the same values."""
+    scan, recon = _copy(finished, tmp_path)
+    chunk = integrity.chunk_path(recon, "phase", (0, 5, 0, 0))
+    if damage == "deleted":
+        chunk.unlink()
+    elif damage == "flipped":
+        _flip(chunk)
+    elif damage == "truncated":
+        chunk.write_bytes(chunk.read_bytes()[:10])
+    else:
+        chunk.write_bytes(b"not a zstd frame at all")
+    capsys.readouterr()
+    assert cli.main(["verify", str(recon)]) == 1
+    out = capsys.readouterr().out
+    assert "phase chunk (0, 5, 0, 0)" in out
+    err = _rerun(scan, recon, tmp_path, capsys)
+    assert "phase chunk (0, 5, 0, 0)" in err and "recomputed" in err
+    assert "Traceback" not in err
+    assert_same_store(recon, finished[1])
+    assert cli.main(["verify", str(recon)]) == 0
+
+
+def test_missing_delta_chunk_is_recomputed_by_tomo(finished, tmp_path, capsys):
+    """Issue #29: `tomo` reported 0 blocks to compute and left NaN."""
+    _, recon = _copy(finished, tmp_path)
+    integrity.chunk_path(recon, "delta", (1, 0, 0, 0)).unlink()
+    capsys.readouterr()
+    assert cli.main(["tomo", str(recon)]) == 0
+    assert "row block (1, 0) is missing" in capsys.readouterr().err
+    assert_same_store(recon, finished[1])
+
+
+def test_damaged_bookkeeping_chunk_recomputes_its_projection(finished, tmp_path, capsys):
+    scan, recon = _copy(finished, tmp_path)
+    integrity.chunk_path(recon, "iterations", (1, 2)).write_bytes(b"\x28\xb5")
+    err = _rerun(scan, recon, tmp_path, capsys)
+    assert "iterations chunk (1, 2)" in err
+    assert_same_store(recon, finished[1])
+
+
+def test_tomo_alone_refuses_damaged_projections_in_one_line_and_run_recomputes(finished, tmp_path, capsys):
+    """Retrieval finished, tomography not begun: a flipped chunk is found by the tomography
+    task that reads it; `tomo` names it in one line, `run` recomputes it and goes on."""
+    scan, recon = _copy(finished, tmp_path)
+    g = zarr.open_group(str(recon), mode="r+")
+    for name in ("delta", "beta", "tomo_done"):
+        del g[name]
+    _flip(integrity.chunk_path(recon, "attenuation", (1, 4, 0, 0)))
+    capsys.readouterr()
+    assert cli.main(["tomo", str(recon), "--center-um", str(g.attrs["rotation_center_m"] * 1e6)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 or all("tomo:" in line for line in err[:-1])
+    assert "attenuation chunk (1, 4, 0, 0)" in err[-1] and "Traceback" not in "\n".join(err)
+    _rerun(scan, recon, tmp_path, capsys)
+    assert_same_store(recon, finished[1])
+
+
+def test_verify_repair_marks_damage_not_done(finished, tmp_path, capsys):
+    scan, recon = _copy(finished, tmp_path)
+    _flip(integrity.chunk_path(recon, "beta", (1, 0, 0, 0)))
+    assert cli.main(["verify", str(recon), "--repair"]) == 1
+    assert "row block (1, 0) marked not done" in capsys.readouterr().out
+    assert int(zarr.open_group(str(recon))["tomo_done"][1, 0]) == 0
+    _rerun(scan, recon, tmp_path, capsys)
+    assert_same_store(recon, finished[1])
+
+
+def test_verify_reads_a_scan_store(finished, tmp_path, capsys):
+    scan = tmp_path / "scan.zarr"
+    shutil.copytree(finished[0], scan)
+    assert cli.main(["verify", str(scan)]) == 0
+    integrity.chunk_path(scan, "projections", (1, 2, 0, 0)).unlink()
+    assert cli.main(["verify", str(scan)]) == 1
+    assert "projections chunk (1, 2, 0, 0): missing" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("kill_at", [1, 6, 12, "attributes"])
+def test_a_kill_during_creation_leaves_no_store_and_the_rerun_is_whole(
+    finished, tmp_path, capsys, monkeypatch, kill_at
+):
+    """Issue #29: a creation killed before its attributes left a store that accepted any
+    parameters. The store is built under a hidden name and renamed when whole."""
+    from pwf_dask import workflow
+
+    scan, _ = finished
+    recon = tmp_path / "recon.zarr"
+    create, build, calls = scan_io._create, scan_io._build_reconstruction, [0]
+
+    def killed_create(*args, **kwargs):
+        calls[0] += 1
+        if calls[0] == kill_at:
+            raise KeyboardInterrupt
+        return create(*args, **kwargs)
+
+    def killed_after_build(path, info, params):
+        build(path, info, params)
+        raise KeyboardInterrupt  # every array and attribute written, the rename not done
+
+    if kill_at == "attributes":
+        monkeypatch.setattr(scan_io, "_build_reconstruction", killed_after_build)
+    else:
+        monkeypatch.setattr(scan_io, "_create", killed_create)
+    with pytest.raises(KeyboardInterrupt):
+        workflow.run_scan(scan, recon, max_iter=15)
+    assert not recon.exists()
+    monkeypatch.undo()
+    integrity.partial_path(recon).mkdir(exist_ok=True)  # what a kill -9 leaves: cleared, not trusted
+    (integrity.partial_path(recon) / "zarr.json").write_text("{")
+    _rerun(scan, recon, tmp_path, capsys)
+    assert not integrity.partial_path(recon).exists()
+    assert_same_store(recon, finished[1])
+
+
+def test_resuming_with_another_scan_is_refused(finished, tmp_path, capsys):
+    """Issue #29: two scans of one shape, both with coherence lengths: a resume mixed 11
+    projections of one with 31 of the other. The fingerprint refuses it in one line."""
+    scan, recon = _copy(finished, tmp_path)
+    other = tmp_path / "other.zarr"
+    simulate_scan(other, preset="demo", shape=(32, 48), angles=6, positions=2, seed=2, progress=False)
+    zarr.open_group(str(recon), mode="r+")["iterations"][0, 3] = -1
+    capsys.readouterr()
+    assert cli.main(["run", str(other), str(recon), *RUN]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "another scan" in err[0] and "reference" in err[0], err
+    assert int(zarr.open_group(str(recon))["iterations"][0, 3]) == -1
+
+
+def _scan_with(tmp_path, finished, edit):
+    path = tmp_path / "bad.zarr"
+    shutil.copytree(finished[0], path)
+    g = zarr.open_group(str(path), mode="r+")
+    edit(g)
+    scan_io.consolidate(path)
+    return path
+
+
+def _set_attr(name, value):
+    return lambda g: g.attrs.update({name: value})
+
+
+def _complex(g):
+    data = g["projections"][...]
+    scan_io._create(
+        g,
+        "projections",
+        data.shape,
+        (1, 1, *data.shape[2:]),
+        g["projections"].metadata.dimension_names,
+        "complex64",
+        0,
+        data.astype(np.complex64),
+    )
+
+
+def _angles_equal(g):
+    g["angle"][...] = 3.0
+
+
+@pytest.mark.parametrize(
+    "edit, words",
+    [
+        (_set_attr("flat_dark_corrected", "false"), "flat_dark_corrected"),
+        (_set_attr("energy_eV", "20000"), "energy_eV"),
+        (_set_attr("energy_eV", True), "energy_eV"),
+        (_set_attr("energy_eV", 1.0), "energy_eV"),
+        (_set_attr("energy_eV", 50.0), "energy_eV"),
+        (_complex, "complex"),
+        (_angles_equal, "angles"),
+    ],
+    ids=["bool-as-text", "number-as-text", "number-as-bool", "energy-1", "energy-50", "complex", "angles-equal"],
+)
+def test_bad_scans_are_refused_in_one_line_with_nothing_written(finished, tmp_path, capsys, edit, words):
+    scan = _scan_with(tmp_path, finished, edit)
+    recon = tmp_path / "recon.zarr"
+    capsys.readouterr()
+    assert cli.main(["run", str(scan), str(recon), *RUN]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
+    assert not recon.exists() and not integrity.partial_path(recon).exists()
+
+
+def test_zero_positions_are_refused(tmp_path, capsys):
+    scan = tmp_path / "empty.zarr"
+    scan_io.create_scan(
+        scan,
+        n_positions=0,
+        angles_deg=[0.0, 1.0],
+        shape=(32, 32),
+        pixel_size_m=1e-6,
+        dtype="float32",
+        attrs={
+            "energy_eV": 2e4,
+            "pixel_size_m": 1e-6,
+            "sample_diffuser_distance_m": 0.1,
+            "diffuser_detector_distance_m": 0.5,
+            "flat_dark_corrected": True,
+        },
+    )
+    scan_io.consolidate(scan)
+    assert cli.main(["retrieve", str(scan), str(tmp_path / "r.zarr")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "position" in err[0], err
+
+
+@pytest.mark.parametrize(
+    "option, words",
+    [
+        (["--tol", "nan"], "tol"),
+        (["--scheduler", "foo"], "unknown scheduler"),
+        (["--scheduler", "tls://127.0.0.1:1"], "--security"),
+        (["--scheduler", "tls://127.0.0.1:1", "--security", "nowhere.yaml"], "no such file"),
+    ],
+)
+def test_bad_run_options_are_refused_before_anything_is_written(finished, tmp_path, capsys, option, words):
+    recon = tmp_path / "recon.zarr"
+    capsys.readouterr()
+    assert cli.main(["run", str(finished[0]), str(recon), *RUN, *option]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
+    assert not recon.exists()
+
+
+def test_local_dashboard_listens_on_this_host_only():
+    """Issue #29: ``dashboard_address=":0"`` answered from other addresses."""
+    from pwf_dask.cluster import Runner
+
+    with Runner("local", workers=1) as runner:
+        link = runner.client.dashboard_link
+        assert "127.0.0.1" in link
+        server = runner.client.cluster.scheduler.http_server
+        hosts = {s.getsockname()[0] for s in server._sockets.values()}
+        assert hosts == {"127.0.0.1"}, hosts
+
+
+cloudpickle.register_pickle_by_value(sys.modules[__name__])  # workers cannot import tests/
+
+
+def _die_once(marker):
+    import os
+    from pathlib import Path
+
+    if not Path(marker).exists():
+        Path(marker).write_text("died")
+        os._exit(1)
+    return os.getpid()
+
+
+def test_processes_scheduler_survives_a_lost_worker(tmp_path):
+    """Issue #29: `processes` aborted the run when one worker died; it is now a LocalCluster
+    under nannies, as `local`: the worker is restarted and its task retried."""
+    from pwf_dask.cluster import Runner
+
+    with Runner("processes", workers=1) as runner:
+        assert runner.client is not None
+        pids = runner.map(_die_once, [str(tmp_path / "marker")])
+    assert (tmp_path / "marker").exists() and len(pids) == 1
+
+
+def test_store_paths_are_absolute_before_tasks_are_sent(finished, tmp_path, monkeypatch):
+    """Issue #29: relative paths were opened in the workers' working directory."""
+    from pwf_dask import workflow
+
+    scan, recon = _copy(finished, tmp_path)
+    monkeypatch.chdir(tmp_path)
+    seen = []
+    original = workflow._decode_task
+
+    def spy(items, *, recon_path):
+        seen.append(recon_path)
+        return original(items, recon_path=recon_path)
+
+    monkeypatch.setattr(workflow, "_decode_task", spy)
+    workflow.retrieve_scan(scan, "recon.zarr", max_iter=15)
+    assert seen and all(p == str(recon.resolve()) for p in seen)
+
+
+@pytest.mark.parametrize("damage", ["deleted", "flipped"])
+def test_a_damaged_scan_chunk_is_named_before_anything_is_computed(finished, tmp_path, capsys, damage):
+    """A scan chunk that is lost (it would read as zeros) or damaged is named in one line."""
+    scan = tmp_path / "scan.zarr"
+    shutil.copytree(finished[0], scan)
+    chunk = integrity.chunk_path(scan, "projections", (0, 4, 0, 0))
+    chunk.unlink() if damage == "deleted" else _flip(chunk)
+    capsys.readouterr()
+    assert cli.main(["run", str(scan), str(tmp_path / "recon.zarr"), *RUN]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "projections chunk (0, 4, 0, 0)" in err[0], err
+    assert not (tmp_path / "recon.zarr").exists()
