@@ -407,6 +407,9 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=_HelpFormatter,
     )
     p.add_argument("--version", action="version", version=f"pwf-dask {__version__}")
+    loud = p.add_mutually_exclusive_group()
+    loud.add_argument("-v", "--verbose", action="store_true", help="debug messages too")
+    loud.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only: no progress lines")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def command(name: str, text: str) -> argparse.ArgumentParser:
@@ -623,7 +626,10 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 
 
 def main(argv: list[str] | None = None) -> int:
+    from .log import configure
+
     args = build_parser().parse_args(argv)
+    configure(1 if args.verbose else -1 if args.quiet else 0)
     warnings.showwarning = _one_line_warning
     try:
         return int(args.func(args) or 0)

@@ -16,8 +16,8 @@ oversubscribe the machine.
 
 from __future__ import annotations
 
+import logging
 import os
-import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -100,7 +100,7 @@ class Runner:
             self.client = Client(cluster)
             self._owned += [self.client, cluster]
             where = f"; dashboard {self.client.dashboard_link}" if dashboard else ""
-            print(f"LocalCluster with {n} worker processes{where}", file=sys.stderr)
+            logging.getLogger(__name__).info(f"LocalCluster with {n} worker processes{where}")
         elif s == "local-cuda":
             try:
                 from dask_cuda import LocalCUDACluster

@@ -22,13 +22,14 @@ from __future__ import annotations
 import glob
 import re
 import shutil
-import sys
 import warnings
 from collections.abc import Sequence
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
 
+from .progress import Progress
 from .scan_io import ScanError, _create, consolidate, correct, create_scan
 
 #: The DXchange layout (tomopy, dxchange): the defaults for an HDF5 file given alone.
@@ -321,7 +322,6 @@ def ingest_scan(
         if np.any(a < 0):
             raise ScanError(f"{name}: negative values after flat/dark correction (min {float(a.min()):.3g})")
 
-    shown = False  # progress on the terminal: end its line before an error message
     try:
         g = create_scan(
             out,
@@ -340,23 +340,17 @@ def ingest_scan(
             img = stored(src.mean(idx) if average else src.frame(k))
             check(f"reference {k}", img)
             g["reference"][k] = img
-        done, total = 0, k_total * n_ang
-        for k, (src, idx) in enumerate(positions):
-            for i in range(n_ang):
-                img = stored(src.frame(i, idx))
-                check(f"projection {i} of position {k} ({src.spec})", img)
-                g["projections"][k, i] = img
-                done += 1
-                if progress and (done % max(1, total // 20) == 0 or done == total):
-                    print(f"\ringesting projections: {done}/{total}", end="", file=sys.stderr)
-                    shown = True
-        if progress:
-            print(file=sys.stderr)
+        done = [0]
+        with Progress("ingest", k_total * n_ang, lambda: done[0], unit="projections") if progress else nullcontext():
+            for k, (src, idx) in enumerate(positions):
+                for i in range(n_ang):
+                    img = stored(src.frame(i, idx))
+                    check(f"projection {i} of position {k} ({src.spec})", img)
+                    g["projections"][k, i] = img
+                    done[0] += 1
         consolidate(out)
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)
-        if shown:
-            print(file=sys.stderr)
         raise
     finally:
         for s in sources:

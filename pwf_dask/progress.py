@@ -28,7 +28,9 @@ def format_seconds(seconds: float) -> str:
 class Progress:
     """``with Progress(label, total, count):`` reports ``count()`` (items done, including any
     done before this run) until the block ends. ``count`` is polled from a thread every
-    ``interval_s``; its exceptions (a store being written) skip that poll."""
+    ``interval_s``; its exceptions (a store being written) skip that poll. Without a
+    ``stream`` it writes to stderr only where the ``pwf_dask`` logger shows INFO
+    (:func:`pwf_dask.log.configure`; the CLI's default, off with ``-q``)."""
 
     def __init__(
         self,
@@ -41,7 +43,10 @@ class Progress:
         interval_s: float = 1.0,
         quiet_step_percent: float = 10.0,
     ):
+        from .log import progress_enabled
+
         self.label, self.total, self.count, self.unit = label, int(total), count, unit
+        self.enabled = stream is not None or progress_enabled()
         self.stream = stream if stream is not None else sys.stderr
         self.interval_s = interval_s
         self.quiet_step = quiet_step_percent
@@ -86,6 +91,8 @@ class Progress:
                 self._report(done)
 
     def __enter__(self) -> Progress:
+        if not self.enabled:
+            return self
         self._t0 = time.perf_counter()
         self._start_count = self._safe_count() or 0
         self._report(self._start_count)
@@ -94,6 +101,8 @@ class Progress:
         return self
 
     def __exit__(self, exc_type, *exc) -> None:
+        if not self.enabled:
+            return
         self._stop.set()
         if self._thread is not None:
             self._thread.join()

@@ -11,8 +11,8 @@ Dask appears here and in :mod:`pwf_dask.cluster` only; the numerics stay pure fu
 from __future__ import annotations
 
 import json
+import logging
 import shutil
-import sys
 import threading
 import time
 from functools import partial
@@ -28,6 +28,8 @@ from .optics import wavelength_m
 from .retrieval import METHODS, check_diffuser_drift, check_diffuser_upstream, check_solver_options, parse_alpha
 from .solver import DEFAULT_ALPHA, PAPER_ALPHA, PAPER_TOL
 from .tracking import MIN_POSITIONS
+
+log = logging.getLogger(__name__)
 
 #: methods that combine the K diffuser positions of one angle into one projection
 MULTI_IMAGE = ("lcs", "umpa", "mist")
@@ -185,7 +187,7 @@ def choose_scan_alpha(scan_path, recon_path, options: dict, device: str, coheren
     n_angles = zarr.open_group(str(scan_path), mode="r", use_consolidated=False)["projections"].shape[1]
     item = (0, n_angles // 2)
     res = _retrieve_item(item, scan_path, recon_path, {**options, "alpha": "discrepancy"}, device, None, coherence)
-    print(f"alpha: {res.parameters['alpha']} by the discrepancy principle on projection {item}", file=sys.stderr)
+    _say(f"alpha: {res.parameters['alpha']} by the discrepancy principle on projection {item}")
     return complex(res.parameters["alpha"]), json.dumps(res.parameters["alpha_trials"])
 
 
@@ -414,7 +416,7 @@ def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, co
 
 
 def _say(message: str) -> None:
-    print(message, file=sys.stderr)
+    log.info(message)
 
 
 def _report_damage(stage: str, damaged: list, what: str) -> None:

@@ -4,6 +4,15 @@ import pytest
 from pwf_dask.backend import cupy_or_none
 
 
+@pytest.fixture(autouse=True)
+def pwf_dask_messages():
+    """The library's stage messages and progress on stderr, as the CLI shows them (tests read
+    them with capsys), whatever an earlier test's `-q` left."""
+    from pwf_dask.log import configure
+
+    configure(0)
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)

@@ -90,6 +90,7 @@ def test_a_one_angle_scan_retrieves_and_tomography_refuses_in_one_line(tmp_path,
     assert np.array_equal(xr.open_zarr(recon).phase.values, phase)
 
 
+@pytest.mark.slow
 def test_ctrl_c_during_run_says_what_is_saved_and_the_rerun_completes(tmp_path):
     """Issue #28: SIGINT exits 130 within seconds with the resume message; the same command
     then completes the store."""

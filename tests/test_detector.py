@@ -78,6 +78,7 @@ def test_stacks_are_repaired_frame_by_frame(sim):
     np.testing.assert_array_equal(mask, np.stack([ta, tb]))
 
 
+@pytest.mark.slow
 def test_pwf_with_zingers_matches_the_clean_result(sim):
     """65 zingers of 10x the mean in each image (1e-3 of the pixels): 0.99 relative phase error
     with every pixel fitted, the clean image's error when they are left out (docs/validation.md)."""

@@ -42,3 +42,18 @@ def test_runner_map_reports_each_item_as_it_lands(capsys):
     assert out == [i * i for i in range(6)]
     err = capsys.readouterr().err.splitlines()
     assert err[0].startswith("work: 0/12 items") and err[-1].startswith("work: 12/12 items (100 %)")
+
+
+def test_quiet_and_verbose_flags_set_what_the_library_says(tmp_path, capsys):
+    """Issue #30: the library logs (``pwf_dask`` loggers) and the CLI configures it: `-q`
+    leaves warnings and errors only, no progress lines; the default shows both."""
+    from pwf_dask import cli
+
+    scan = tmp_path / "s.zarr"
+    assert cli.main(["-q", "simulate", str(scan), "--preset", "demo", "--shape", "32", "32", "--angles", "2"]) == 0
+    assert capsys.readouterr().err == ""
+    assert cli.main(["-q", "retrieve", str(scan), str(tmp_path / "r.zarr"), "--max-iter", "5"]) == 0
+    assert capsys.readouterr().err == ""
+    assert cli.main(["retrieve", str(scan), str(tmp_path / "r2.zarr"), "--max-iter", "5"]) == 0
+    err = capsys.readouterr().err
+    assert "retrieve: 4 of 4 projections to compute" in err and "projections (100 %)" in err

@@ -44,6 +44,7 @@ def scene():
     return sim, res
 
 
+@pytest.mark.slow
 def test_contract_result(scene):
     sim, res = scene
     assert res.phase.shape == sim.sample.shape and res.attenuation.shape == sim.sample.shape
@@ -74,6 +75,7 @@ def test_largest_bead_phase_contrast_within_10_percent(scene):
     assert got == pytest.approx(true_c, rel=0.10)
 
 
+@pytest.mark.slow
 def test_zero_phase_diffuser_overshoots_the_bead(scene):
     """Where the paper's zero-phase diffuser estimate fails: the same scene with the paper's
     alpha gives a bead phase contrast > 15 % too deep (docs/validation.md, Where PWF fails)."""
@@ -130,6 +132,7 @@ def test_background_is_zero(scene):
     "wrong basin, the field on a 2x or 3x grid gives 0.04 (docs/validation.md, Where PWF fails); "
     "30 pi at 0.65 um holds",
 )
+@pytest.mark.slow
 def test_thick_scene_without_wrapping():
     """A 420 um soda-lime glass rod: > 30 pi of phase, recovered without wrapping."""
     setup = SpeckleSetup(shape=(256, 256), pixel_size_m=2e-6, photons=1e4)
@@ -153,6 +156,7 @@ def test_ablation_without_preconditioner_leaves_phase_near_zero(small_scene):
     assert gain(res.phase, sim.phase, sim.phase < -0.5) < 0.2
 
 
+@pytest.mark.slow
 def test_start_from_umpa_reaches_the_solution(small_scene):
     """``initial="umpa"``: PWF refines UMPA's one-image estimate to the same accuracy."""
     sim = small_scene
@@ -161,6 +165,7 @@ def test_start_from_umpa_reaches_the_solution(small_scene):
     assert 0.9 <= gain(res.phase, sim.phase, sim.phase < -0.5) <= 1.1
 
 
+@pytest.mark.slow
 def test_double_precision_agrees_with_single(small_scene):
     sim = small_scene
     r32 = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=150, tol=0))
@@ -250,6 +255,7 @@ def test_upstream_diffuser_on_cupy(cupy):
 
 
 @pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.slow
 def test_a_known_upstream_distance_lowers_the_error(seed):
     """The independent checks' L1 = 0 geometry, 10 mm upstream (128^2, fine grains): fitted at
     the sample plane (the scan says only L1 = 0) the diffuser keeps the phase gain (0.994-0.997
@@ -426,6 +432,7 @@ def test_alpha_by_name_and_bad_alpha_refused():
             parse_alpha(bad)
 
 
+@pytest.mark.slow
 def test_thick_rod_goes_on_a_finer_grid_and_holds():
     """30 pi of phase at the paper's geometry (the stability map's rod, thickened): speckle
     displacements beyond the grain, phase gradients of 4.7 rad/px (99th percentile), above the
@@ -487,6 +494,7 @@ def test_coarse_pixels_go_on_a_finer_field_grid_and_hold():
 
 
 @pytest.mark.parametrize("beam", [0.98, 0.95])
+@pytest.mark.slow
 def test_a_beam_weaker_than_at_the_reference_still_converges(small_scene, beam):
     """The sample frame a little darker than the reference (ring current decay): a global
     factor that Re(psi)'s mean absorbs and the background plane removes. With the former

@@ -148,6 +148,7 @@ def test_dark_field_of_a_scene_acts_behind_the_sample_only():
     assert blurred.clean_samples[0][core].std() < 0.8 * plain.clean_samples[0][core].std()
 
 
+@pytest.mark.slow
 def test_dark_field_fails_pwf_and_not_umpa_k12():
     """PWF's model has no visibility term: the lost speckle contrast behind a scattering
     sample comes back as extra phase (gain well above 1), while UMPA's window correlation

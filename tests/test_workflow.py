@@ -133,6 +133,7 @@ def test_angle_chains_keep_halves_and_positions_apart():
         workflow.angle_chains(angles, 1, 0)
 
 
+@pytest.mark.slow
 def test_warm_started_chains_converge_faster_to_the_same_projections(tiny_scan, tmp_path, capsys):
     """PWF started from the projection two angles before stops sooner, at the same phase as
     from zero (to a small part of the phase), and the store records the chain length."""
@@ -343,6 +344,7 @@ def bead_values(ds, p):
     return float(ds.delta[p].values[ins].mean()), float(ds.beta[p].values[ins].mean())
 
 
+@pytest.mark.slow
 def test_rotation_axis_found(demo_recon):
     true = demo_recon.attrs["simulation_rotation_axis_offset_m"]
     assert abs(demo_recon.attrs["rotation_center_m"] - true) < 0.1 * demo_recon.attrs["pixel_size_m"]
@@ -393,6 +395,7 @@ def beads_recon(tmp_path_factory):
     return xr.open_zarr(recon)
 
 
+@pytest.mark.slow
 def test_glass_bead_delta_within_5_percent(beads_recon):
     assert beads_recon.attrs["simulation_preset"] == "beads" and beads_recon.attrs["alpha"] == "0.1+0.05j"
     dg, _ = delta_beta("soda-lime glass", beads_recon.attrs["energy_eV"])
@@ -467,6 +470,7 @@ def bead_errors(ds, p):
     return abs(d / dg - 1), abs(b / bg - 1)
 
 
+@pytest.mark.slow
 def test_pwf_k1_beats_lcs_k12_on_bead_delta(beads_recon, lcs12_beads_recon):
     """The paper's headline on the default scan (a bead of the paper's size), from measured errors."""
     assert lcs12_beads_recon.sizes["position"] == 1 and lcs12_beads_recon.attrs["method"] == "lcs"
@@ -474,6 +478,7 @@ def test_pwf_k1_beats_lcs_k12_on_bead_delta(beads_recon, lcs12_beads_recon):
     assert bead_errors(beads_recon, 0)[0] < bead_errors(lcs12_beads_recon, 0)[0]
 
 
+@pytest.mark.slow
 def test_pwf_k1_beats_lcs_k12_on_bead_beta(beads_recon, lcs12_beads_recon, demo_recon, lcs12_recon):
     """The paper's beta finding: LCS's attenuation carries phase-coupling artifacts, on the
     paper's bead and on the demo's small one."""
@@ -531,6 +536,7 @@ def interior_recon(tmp_path_factory):
     return ds, truth, seen
 
 
+@pytest.mark.slow
 def test_interior_scan_keeps_the_structure_up_to_one_constant_per_slice(interior_recon):
     """Nothing of the sample is sample-free, so no projection's phase level can be known; the
     structure can: minus its mean offset per slice, delta errs as on the demo scan (0.11 of
