@@ -20,7 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pwf_dask.cli import add_retrieval_options, retrieval_kwargs
+from pwf_dask.cli import add_retrieval_options, add_tomo_options, retrieval_kwargs
 from pwf_dask.retrieval import check_solver_options, parse_alpha
 
 SYSTEMS = {"slurm": "SLURMCluster", "pbs": "PBSCluster"}
@@ -46,7 +46,7 @@ def parser() -> argparse.ArgumentParser:
     jobs.add_argument("--local-directory", default="/tmp", help="workers' scratch space on the node")
     run = p.add_argument_group("reconstruction (the options of `pwf-dask run`)")
     run.add_argument("--split", default="auto", choices=["auto", "positions", "even-odd"], help="FSC halves")
-    run.add_argument("--center-um", type=float, help="rotation axis, um from the frame centre (default: found)")
+    add_tomo_options(run)
     add_retrieval_options(run)
     return p
 
@@ -94,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
             device="gpu",
             split=args.split,
             center_m=center,
+            fbp=args.fbp,
             **kwargs,
         )
     finally:

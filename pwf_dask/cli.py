@@ -151,7 +151,9 @@ def _tomo(args) -> int:
 
     center = None if args.center_um is None else args.center_um * 1e-6
     with _runner(args) as runner:
-        r = tomo_scan(args.recon, scheduler=args.scheduler, device=args.device, center_m=center, runner=runner)
+        r = tomo_scan(
+            args.recon, scheduler=args.scheduler, device=args.device, center_m=center, runner=runner, fbp=args.fbp
+        )
     print(f"tomograms delta, beta written to {args.recon} (rotation centre {r['rotation_center_m'] * 1e6:+.2f} µm)")
     return 0
 
@@ -181,6 +183,7 @@ def _run(args) -> int:
             split=args.split,
             center_m=center,
             runner=runner,
+            fbp=args.fbp,
             **retrieval_kwargs(args),
         )
     f = r["fsc"]
@@ -204,7 +207,7 @@ def _estimate(args) -> int:
     if args.workers < 1 or args.iterations < 1:
         raise ValueError("--workers and --iterations are whole numbers >= 1")
     stages, sizes = estimate_for_scan(
-        args.scan, workers=args.workers, iterations=args.iterations, field_upsample=args.field_upsample
+        args.scan, workers=args.workers, iterations=args.iterations, field_upsample=args.field_upsample, fbp=args.fbp
     )
     ny, nx = sizes["shape"]
     print(f"{args.scan}: {sizes['positions']} position(s) x {sizes['angles']} angles x {ny} x {nx} px")
@@ -245,6 +248,9 @@ def _bench(args) -> int:
         "iteration": lambda: bench.run_iteration_benchmark(args.out, device=args.device, quick=args.quick),
         "accuracy": lambda: bench.run_accuracy_benchmark(args.out, preset=args.preset),
         "scan": lambda: bench.run_scan_benchmark(args.out),
+        "fbp": lambda: bench.run_fbp_benchmark(args.out, quick=args.quick),
+        "perscan": lambda: bench.run_per_scan_benchmark(args.out, quick=args.quick),
+        "fullwidth": lambda: bench.run_fullwidth_benchmark(args.out, quick=args.quick),
         "stability": lambda: stability.run_stability_benchmark(args.out, quick=args.quick, axes=args.axes),
     }
     if args.what not in runs:
@@ -282,6 +288,20 @@ def _runner(args):
     from .cluster import Runner
 
     return Runner(args.scheduler, dashboard_address=args.dashboard_address, security=args.security)
+
+
+def add_tomo_options(p) -> None:
+    """The tomography options of ``tomo`` and ``run``."""
+    p.add_argument(
+        "--center-um", type=float, help="rotation axis on detector x, µm from the frame centre (default: found)"
+    )
+    p.add_argument(
+        "--fbp",
+        default="auto",
+        choices=["auto", "gridrec", "backproject"],
+        help="filtered back projection: gridrec (gridding with a non-uniform FFT, finufft/cufinufft) or "
+        "backproject (the direct reference); auto: gridrec where its NUFFT is installed",
+    )
 
 
 def add_retrieval_options(p: argparse.ArgumentParser) -> None:
@@ -519,7 +539,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_retrieve)
     t = command("tomo", "delta and beta tomograms by FBP (resumable)")
     t.add_argument("recon", help="a reconstruction store whose projections are retrieved")
-    t.add_argument("--center-um", type=float, help="rotation axis on detector x, um from the frame centre")
+    add_tomo_options(t)
     _compute_options(t)
     t.set_defaults(func=_tomo)
     f = command("fsc", "Fourier shell correlation and resolution")
@@ -531,9 +551,7 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("scan", help="the scan store (CONTRACT §1)")
     u.add_argument("recon", help="the reconstruction store: created, or resumed with the same options")
     _split_option(u)
-    u.add_argument(
-        "--center-um", type=float, help="rotation axis on detector x, um from the frame centre (default: found)"
-    )
+    add_tomo_options(u)
     u.add_argument(
         "--figures", metavar="DIR", help="where `run` writes its figures (default: RECON's folder/NAME_figures)"
     )
@@ -548,6 +566,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     m.add_argument(
         "--field-upsample", type=int, default=1, choices=[1, 2, 3], help="the sample field's grid (run's option)"
+    )
+    m.add_argument(
+        "--fbp", default="auto", choices=["auto", "gridrec", "backproject"], help="tomo's FBP (run's option)"
     )
     m.set_defaults(func=_estimate)
     w = command("verify", "read every chunk of a scan or reconstruction store: missing or damaged ones (exit 1)")
@@ -583,8 +604,11 @@ def build_parser() -> argparse.ArgumentParser:
     b = command("bench", "benchmarks; results to workflows/results/")
     b.add_argument(
         "what",
-        choices=["iteration", "scan", "accuracy", "stability"],
-        help="iteration: PWF iteration / FFT time; scan: throughput per worker; accuracy: speed vs error; "
+        choices=["iteration", "scan", "fbp", "perscan", "fullwidth", "accuracy", "stability"],
+        help="iteration: PWF iteration / FFT time; scan: throughput per worker; fbp: gridrec vs backprojector; "
+        "perscan: calibration, diffuser fit and model build against one retrieval; "
+        "fullwidth: 801 x 32 x 2560 scan through pwf-dask run, full scan modelled; "
+        "accuracy: speed vs error; "
         "stability: where each method fails",
     )
     b.add_argument("--device", default="cpu", choices=["cpu", "gpu", "auto"], help="NumPy or CuPy numerics")

@@ -12,7 +12,7 @@ this project's code (issue #29; ``workflows/results/memory_model.md``, the comma
 
 Time: an iteration costs ``ITERATION_FFT_TIMES`` complex64 FFTs of the padded grid (the
 committed ``bench_iteration_cpu.md`` ratios), timed here on one FFT of the scan's own grid;
-the FBP costs a constant per angle, row and output pixel, timed here on a small block.
+the FBP of a slice costs a fixed part plus one per angle, timed here at the scan's width.
 Both are measured by :func:`measure_speeds` on the machine that runs the estimate.
 """
 
@@ -35,8 +35,7 @@ RETRIEVAL_BYTES_PER_FIELD_PIXEL = 79.0
 #: filtered copy and slopes; per output voxel, the FBP's slice, its scaled copy and the
 #: background fit's float32 output
 TOMO_BASE_MB = 0.0
-TOMO_BYTES_PER_SINOGRAM_ELEMENT = 19.6
-TOMO_BYTES_PER_VOXEL = 18.6
+TOMO_BYTES = {"backproject": (19.6, 18.6), "gridrec": (25.9, 18.8)}
 #: FSC: two float32 volumes, then the transform of each (complex64 half spectra) and slabs
 FSC_BYTES_PER_VOXEL = 8.0 + 16.0
 #: PWF iteration / complex64 FFT of the padded grid (bench_iteration_cpu.md, 2 threads)
@@ -61,7 +60,13 @@ class Speeds:
     """What :func:`measure_speeds` timed on this machine."""
 
     fft_s: float  # one complex64 FFT of the padded grid
-    fbp_s_per_element: float  # per angle x row x output pixel
+    fbp_row_s: float  # FBP of one row (slice) of the scan's width: fixed part ...
+    fbp_row_s_per_angle: float  # ... and per angle
+    fbp: str = "backproject"  # the method timed
+
+    def slice_s(self, n_angles: int) -> float:
+        """One slice's FBP from ``n_angles`` projections."""
+        return self.fbp_row_s + self.fbp_row_s_per_angle * n_angles
 
 
 def padded_grid(shape: tuple[int, int], pad: int = 17) -> tuple[int, int]:
@@ -70,11 +75,13 @@ def padded_grid(shape: tuple[int, int], pad: int = 17) -> tuple[int, int]:
     return computational_shape(shape, pad)
 
 
-def measure_speeds(shape: tuple[int, int], fft_workers: int = 1, pad: int = 17) -> Speeds:
-    """Time one FFT of ``shape``'s padded grid and a small FBP block on this machine."""
+def measure_speeds(shape: tuple[int, int], fft_workers: int = 1, pad: int = 17, fbp: str = "auto") -> Speeds:
+    """Time one FFT of ``shape``'s padded grid, and the FBP ``fbp`` of two rows of the scan's
+    width from 16 and from 48 angles (its cost per slice: a fixed part plus one per angle)."""
     import scipy.fft
 
     from . import tomography
+    from .backend import FFT
 
     grid = padded_grid(shape, pad)
     x = (np.random.default_rng(0).normal(size=grid) + 0j).astype(np.complex64)
@@ -83,11 +90,16 @@ def measure_speeds(shape: tuple[int, int], fft_workers: int = 1, pad: int = 17) 
     for _ in range(3):
         scipy.fft.fft2(x, workers=fft_workers)
     fft_s = (time.perf_counter() - t) / 3
-    na, nr, nx = 64, 8, min(shape[1], 512)
-    sino = np.random.default_rng(1).normal(size=(na, nr, nx)).astype(np.float32)
-    t = time.perf_counter()
-    tomography.filtered_back_projection(sino, np.linspace(0, 180, na, endpoint=False), 1e-6)
-    return Speeds(fft_s, (time.perf_counter() - t) / (na * nr * nx * nx))
+    method = tomography.resolve_fbp(fbp)
+    seconds = []
+    for na in (16, 48):
+        sino = np.random.default_rng(1).normal(size=(na, 2, shape[1])).astype(np.float32)
+        theta = np.linspace(0, 180, na, endpoint=False)
+        t = time.perf_counter()
+        tomography.back_projection(sino, theta, 1e-6, fft=FFT.for_module(np, fft_workers), method=method)
+        seconds.append((time.perf_counter() - t) / 2)
+    per_angle = max(0.0, (seconds[1] - seconds[0]) / 32)
+    return Speeds(fft_s, max(0.0, seconds[0] - 16 * per_angle), per_angle, method)
 
 
 def retrieval_peak_mb(shape: tuple[int, int], field_upsample: int = 1, positions: int = 1, pad: int = 17) -> float:
@@ -98,9 +110,10 @@ def retrieval_peak_mb(shape: tuple[int, int], field_upsample: int = 1, positions
     return RETRIEVAL_BASE_MB + (RETRIEVAL_BYTES_PER_PIXEL * pixels + extra + diffusers) / 1e6
 
 
-def tomo_peak_mb(n_angles: int, rows: int, nx: int) -> float:
+def tomo_peak_mb(n_angles: int, rows: int, nx: int, fbp: str = "backproject") -> float:
     sinogram = n_angles * rows * nx
-    return TOMO_BASE_MB + (TOMO_BYTES_PER_SINOGRAM_ELEMENT * sinogram + TOMO_BYTES_PER_VOXEL * rows * nx * nx) / 1e6
+    per_element, per_voxel = TOMO_BYTES[fbp]
+    return TOMO_BASE_MB + (per_element * sinogram + per_voxel * rows * nx * nx) / 1e6
 
 
 def fsc_peak_mb(ny: int, nx: int) -> float:
@@ -128,7 +141,7 @@ def estimate_scan(
     projections = n_angles * n_positions
     rb = row_block(ny, nx)
     blocks = n_positions * -(-ny // rb)
-    fbp = 2 * speeds.fbp_s_per_element * n_angles * ny * nx * nx * n_positions
+    fbp = 2 * speeds.slice_s(n_angles) * ny * n_positions  # phase and attenuation
     base = WORKER_BASE_MB
     return [
         StageEstimate(
@@ -142,9 +155,9 @@ def estimate_scan(
         StageEstimate(
             "tomo",
             blocks,
-            base + tomo_peak_mb(n_angles, rb, nx),
+            base + tomo_peak_mb(n_angles, rb, nx, speeds.fbp),
             fbp / workers,
-            f"{blocks} row blocks of {rb} rows; FBP {speeds.fbp_s_per_element * 1e9:.2f} ns per angle, row and pixel",
+            f"{blocks} row blocks of {rb} rows; {speeds.fbp} FBP {speeds.slice_s(n_angles):.2f} s per slice",
         ),
         _fsc_stage(ny, nx, n_angles, n_positions, speeds),
     ]
@@ -160,8 +173,8 @@ def _fsc_stage(ny: int, nx: int, n_angles: int, n_positions: int, speeds: Speeds
         return StageEstimate(
             "fsc", pairs, WORKER_BASE_MB + fsc_peak_mb(ny, nx), pairs * ffts, "in the driver: two tomograms at a time"
         )
-    fbp = 2 * speeds.fbp_s_per_element * n_angles * ny * nx * nx  # both halves, phase and attenuation
-    peak = tomo_peak_mb(n_angles // 2, ny, nx) + fsc_peak_mb(ny, nx)
+    fbp = 2 * 2 * speeds.slice_s(n_angles // 2) * ny  # both halves, phase and attenuation
+    peak = tomo_peak_mb(n_angles // 2, ny, nx, speeds.fbp) + fsc_peak_mb(ny, nx)
     return StageEstimate("fsc", 1, WORKER_BASE_MB + peak, fbp + ffts, "in the driver: even/odd half-scans, whole")
 
 
@@ -197,7 +210,7 @@ def os_memory_bytes() -> int:
 
 
 def estimate_for_scan(
-    scan_path, *, workers: int = 1, iterations: int = DEFAULT_ITERATIONS, field_upsample: int = 1
+    scan_path, *, workers: int = 1, iterations: int = DEFAULT_ITERATIONS, field_upsample: int = 1, fbp: str = "auto"
 ) -> tuple[list[StageEstimate], dict]:
     """:func:`estimate_scan` for a scan store (its metadata only; nothing is read but the
     coordinates), with the speeds measured here. Returns the stages and the scan's sizes."""
@@ -205,7 +218,7 @@ def estimate_for_scan(
 
     _, info = open_scan(scan_path, check_values=False)
     l1_zero = info.sample_diffuser_distance_m == 0
-    speeds = measure_speeds(info.shape)
+    speeds = measure_speeds(info.shape, fbp=fbp)
     stages = estimate_scan(
         info.shape,
         info.angles_deg.size,

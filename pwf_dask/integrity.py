@@ -291,6 +291,7 @@ _OPTIONAL = (
     "residual_rmse",
     "outlier_pixels",
     "preview_residual",
+    "diffuser",  # a missing or damaged fit is made again by the next run
     "diffuser_drift_y_px",
     "diffuser_drift_x_px",
 )
@@ -392,6 +393,10 @@ def _repair(path: str, group, report: Verification) -> None:
         elif fault.name in ("delta", "beta"):
             reset_block(path, group, *fault.index[:2])
             report.repaired.append(f"row block {fault.index[:2]} marked not done")
+        elif fault.name == "diffuser":
+            with contextlib.suppress(FileNotFoundError):
+                chunk_path(path, fault.name, fault.index).unlink()
+            report.repaired.append(f"diffuser of position {fault.index[0]} removed (fitted again by the next run)")
         elif fault.name in ("iterations", "tomo_done"):
             report.repaired.append(f"{fault.name} {fault.index} removed (not done)")
     report.repaired = list(dict.fromkeys(report.repaired))

@@ -203,6 +203,30 @@ def computational_shape(frame_shape: tuple[int, int], pad: int) -> tuple[int, in
     return (solver.fast_len(ny + 2 * pad), solver.fast_len(nx + 2 * pad)) if pad else (ny, nx)
 
 
+def diffuser_grid(
+    frame_shape: tuple[int, int],
+    *,
+    energy_eV: float,
+    pixel_size_m: float,
+    diffuser_detector_distance_m: float,
+    coherence_length_x_m: float,
+    coherence_length_y_m: float,
+    pad: int | str = "auto",
+    diffuser_upstream_m: float = 0.0,
+) -> tuple[int, tuple[int, int]]:
+    """(pad, computational grid shape) of :func:`estimate_diffuser` for a frame: "auto" pads
+    by the speckle's spread over the diffuser's whole distance to the detector."""
+    if pad == "auto":
+        pad = auto_pad(
+            pixel_size_m,
+            optics.wavelength_m(energy_eV),
+            diffuser_detector_distance_m + diffuser_upstream_m,
+            coherence_length_x_m,
+            coherence_length_y_m,
+        )
+    return int(pad), computational_shape(tuple(frame_shape), int(pad))
+
+
 def estimate_diffuser(
     reference,
     *,
@@ -225,14 +249,16 @@ def estimate_diffuser(
     xp = get_array_module(reference)
     ref = _check_image("reference", reference, xp)
     wavelength = optics.wavelength_m(energy_eV)
-    if pad == "auto":
-        pad = auto_pad(
-            pixel_size_m,
-            wavelength,
-            diffuser_detector_distance_m + diffuser_upstream_m,
-            coherence_length_x_m,
-            coherence_length_y_m,
-        )
+    pad, shape = diffuser_grid(
+        ref.shape,
+        energy_eV=energy_eV,
+        pixel_size_m=pixel_size_m,
+        diffuser_detector_distance_m=diffuser_detector_distance_m,
+        coherence_length_x_m=coherence_length_x_m,
+        coherence_length_y_m=coherence_length_y_m,
+        pad=pad,
+        diffuser_upstream_m=diffuser_upstream_m,
+    )
     kappa = _diffuser_kappa(diffuser_model, diffuser_material, diffuser_beta_over_delta, energy_eV)
     scale = float(xp.mean(ref))
     if not scale > 0:
@@ -244,8 +270,8 @@ def estimate_diffuser(
         diffuser_detector_distance_m=diffuser_detector_distance_m,
         coherence_length_x_m=coherence_length_x_m,
         coherence_length_y_m=coherence_length_y_m,
-        pad=int(pad),
-        shape=computational_shape(ref.shape, int(pad)),
+        pad=pad,
+        shape=shape,
         phase_screen_iter=phase_screen_iter,
         diffuser_model=diffuser_model,
         beta_over_delta=kappa,

@@ -307,6 +307,7 @@ VARIABLE_ATTRS: dict[str, tuple[str, str]] = {
     "converged": ("1", "stop rule met before max_iter"),
     "residual_rmse": ("percent", "RMS data residual over the mean reference"),
     "outlier_pixels": ("1", "pixels repaired as outliers"),
+    "diffuser": ("1", "fitted diffuser transmission t_r per position (real, imaginary), computational grid"),
     "preview_residual": ("percent", "data residual |y - f| of the first angle's projection (preview)"),
     "diffuser_drift_y_px": ("pixel", "measured speckle drift against the reference, rows"),
     "diffuser_drift_x_px": ("pixel", "measured speckle drift against the reference, columns"),

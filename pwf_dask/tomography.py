@@ -70,6 +70,40 @@ def ramp_filtered(sino, fft: FFT, xp=np):
     return xp.fft.irfft(spec, n=size, axis=-1)[..., edge : edge + nx]
 
 
+#: ``--fbp``: gridding (the default where finufft/cufinufft is installed) or the direct
+#: backprojector (the reference)
+FBP_METHODS = ("auto", "gridrec", "backproject")
+
+
+def resolve_fbp(method: str, xp=np) -> str:
+    """The FBP that ``method`` means for array module ``xp``: "auto" is gridrec where its
+    NUFFT is installed (finufft on the CPU, cufinufft on the GPU), else the backprojector."""
+    if method not in FBP_METHODS:
+        raise ValueError(f"fbp must be one of {', '.join(FBP_METHODS)}, got {method!r}")
+    if method != "auto":
+        return method
+    from . import gridrec
+
+    return "gridrec" if gridrec.available(xp) else "backproject"
+
+
+def back_projection(sinogram, angles_deg, pixel_size_m: float, center_offset_m: float = 0.0, **kw):
+    """FBP by ``method`` (:data:`FBP_METHODS`, keyword; default "auto"): slices (row, v, u)
+    per metre from sinograms (angle, row, x). ``n_out`` and ``fft`` as the backprojector's."""
+    method = resolve_fbp(kw.pop("method", "auto"), get_array_module(sinogram))
+    if method == "gridrec":
+        from .gridrec import gridrec_back_projection
+
+        return gridrec_back_projection(sinogram, angles_deg, pixel_size_m, center_offset_m, **kw)
+    return filtered_back_projection(sinogram, angles_deg, pixel_size_m, center_offset_m, **kw)
+
+
+def sinogram_block(sinogram, fft: FFT | None):
+    """(xp, fft, float32 sinogram (angle, row, x)) of a block, as both FBPs take it."""
+    xp = get_array_module(sinogram)
+    return xp, fft or FFT.for_module(xp), xp.asarray(sinogram, dtype=xp.float32)
+
+
 def filtered_back_projection(
     sinogram,
     angles_deg,
@@ -83,9 +117,7 @@ def filtered_back_projection(
     ``center_offset_m`` is the rotation axis position on the detector x coordinate (0: the
     frame centre). Output grids: u, v centred on the axis, ``n_out`` pixels (default nx).
     """
-    xp = get_array_module(sinogram)
-    fft = fft or FFT.for_module(xp)
-    sino = xp.asarray(sinogram, dtype=xp.float32)
+    xp, fft, sino = sinogram_block(sinogram, fft)
     na, nr, nx = sino.shape
     n_out = n_out or nx
     # the angle weights folded into q, and two zero columns either side: a ray that leaves

@@ -55,8 +55,8 @@ def _scan_frames(scan_path):
     return g, flat, dark, corrected
 
 
-#: diffuser estimates of this process, one per (scan, position, options): every angle of a
-#: position shares its diffuser, so a worker fits it once (docs/methods.md, Diffuser estimate)
+#: diffuser estimates held by this process, one per (scan, store, position, options): read
+#: from the store once per worker, not once per task
 _DIFFUSERS: dict = {}
 _DIFFUSERS_LOCK = threading.Lock()
 _DIFFUSER_OPTIONS = (
@@ -68,29 +68,118 @@ _DIFFUSER_OPTIONS = (
     "phase_screen_iter",
     "diffuser_upstream_m",
 )
+#: the reconstruction store's array of the fitted diffusers (position, y, x, re/im), float32
+DIFFUSER_ARRAY = "diffuser"
 
 
-def _position_diffuser(scan_path, p, reference, attrs, coherence, options, device, fft_workers):
-    from .retrieval import estimate_diffuser
+def _fit_diffuser(reference, attrs, coherence, options, fft_workers):
+    """The diffuser t_r of one position, fitted to its repaired reference (Methods, Diffuser
+    transmission function; :func:`pwf_dask.retrieval.estimate_diffuser`)."""
+    from . import retrieval
 
     chosen = {k: options[k] for k in _DIFFUSER_OPTIONS if k in options}
-    # the reference's repair threshold is part of the key: it changed the pixels fitted
+    return retrieval.estimate_diffuser(
+        repair_outliers(reference, options.get("outlier_sigma", DEFAULT_OUTLIER_SIGMA))[0],  # the fit reads every pixel
+        energy_eV=float(attrs["energy_eV"]),
+        pixel_size_m=float(attrs["pixel_size_m"]),
+        diffuser_detector_distance_m=float(attrs["diffuser_detector_distance_m"]),
+        coherence_length_x_m=coherence[0],
+        coherence_length_y_m=coherence[1],
+        fft_workers=fft_workers,
+        **chosen,
+    )
+
+
+def _diffuser_task(p, *, scan_path, options, device, fft_workers, coherence):
+    """Stage task: position p's diffuser, fitted once for the whole scan; returned to the
+    client (complex64), which stores it for every projection task of the position."""
+    g, flat, dark, corrected = _scan_frames(scan_path)
+    reference = _read_corrected(g, "reference", p, flat, dark, corrected)
+    xp = resolve_device(device)
+    t0 = time.perf_counter()
+    t = _fit_diffuser(xp.asarray(reference), g.attrs, coherence[p], options, worker_fft_threads(fft_workers))
+    return p, to_numpy(t).astype(np.complex64), time.perf_counter() - t0
+
+
+def _stored_diffuser(recon_path: str, p: int):
+    """Position p's diffuser as stored by :func:`_fit_diffusers`, or None where it is not
+    (a store made before, a damaged chunk: the caller fits it)."""
+    import zarr
+
+    if not Path(recon_path, DIFFUSER_ARRAY).exists():  # also before the store is made (alpha probe)
+        return None
+    g = zarr.open_group(recon_path, mode="r", use_consolidated=False)
+    try:
+        pair = integrity.read_checked(recon_path, g[DIFFUSER_ARRAY], DIFFUSER_ARRAY, p)
+    except integrity.DamagedChunk:
+        return None
+    # positions' grids differ with their coherence (the padding): NaN beyond this one's
+    valid = np.isfinite(pair[..., 0])
+    ny, nx = int(valid.any(axis=1).sum()), int(valid.any(axis=0).sum())
+    t = np.empty((ny, nx), dtype=np.complex64)
+    t.real, t.imag = pair[:ny, :nx, 0], pair[:ny, :nx, 1]
+    return t
+
+
+def _diffuser_grid_shape(scan_path, coherence, options) -> tuple[int, int]:
+    """The largest computational grid of the scan's positions (the stored array's)."""
+    from .retrieval import diffuser_grid
+
+    g = _scan_frames(scan_path)[0]
+    kw = {k: options[k] for k in ("pad", "diffuser_upstream_m") if k in options}
+    shapes = [
+        diffuser_grid(
+            g["reference"].shape[1:],
+            energy_eV=float(g.attrs["energy_eV"]),
+            pixel_size_m=float(g.attrs["pixel_size_m"]),
+            diffuser_detector_distance_m=float(g.attrs["diffuser_detector_distance_m"]),
+            coherence_length_x_m=cx,
+            coherence_length_y_m=cy,
+            **kw,
+        )[1]
+        for cx, cy in coherence
+    ]
+    return max(s[0] for s in shapes), max(s[1] for s in shapes)
+
+
+def _fit_diffusers(runner, recon_path: str, positions: list[int], **task) -> dict:
+    """Fit the diffusers of ``positions`` not yet in the store, one task per position, and
+    store them (issue #31: once per position in a scan, whatever the number of workers)."""
+    import zarr
+
+    todo = [p for p in positions if _stored_diffuser(recon_path, p) is None]
+    if not todo:
+        return {}
+    fitted = runner.map(_diffuser_task, todo, label="diffuser", unit="positions", **task)
+    g = zarr.open_group(recon_path, mode="r+", use_consolidated=False)
+    shape = _diffuser_grid_shape(task["scan_path"], task["coherence"], task["options"])
+    if DIFFUSER_ARRAY not in g or g[DIFFUSER_ARRAY].shape[1:3] != shape:
+        n = g["phase"].shape[0]
+        dims = ("position", "diffuser_y", "diffuser_x", "re_im")
+        scan_io._create(g, DIFFUSER_ARRAY, (n, *shape, 2), (1, *shape, 2), dims, "float32", np.nan)
+    for p, t, _ in fitted:
+        pair = np.full((*shape, 2), np.nan, dtype=np.float32)
+        pair[: t.shape[0], : t.shape[1], 0], pair[: t.shape[0], : t.shape[1], 1] = t.real, t.imag
+        g[DIFFUSER_ARRAY][p] = pair
+    return {p: seconds for p, _, seconds in fitted}
+
+
+def _position_diffuser(scan_path, recon_path, p, reference, attrs, coherence, options, device, fft_workers):
+    """Position p's diffuser for a projection task: the stored fit (one read per worker), or
+    a fit of this worker's own where the store has none."""
+    chosen = {k: options[k] for k in _DIFFUSER_OPTIONS if k in options}
     repair = options.get("outlier_sigma", DEFAULT_OUTLIER_SIGMA)
-    key = (str(scan_path), p, tuple(coherence), device, repair, tuple(sorted(chosen.items())))
-    with _DIFFUSERS_LOCK:  # threads of one worker wait for the one fit instead of repeating it
+    key = (str(scan_path), str(recon_path), p, tuple(coherence), device, repair, tuple(sorted(chosen.items())))
+    with _DIFFUSERS_LOCK:  # threads of one worker wait for the one read or fit
         if key not in _DIFFUSERS:
             if len(_DIFFUSERS) >= 8:
                 _DIFFUSERS.pop(next(iter(_DIFFUSERS)))
-            _DIFFUSERS[key] = estimate_diffuser(
-                repair_outliers(reference, repair)[0],  # the fit reads every pixel
-                energy_eV=float(attrs["energy_eV"]),
-                pixel_size_m=float(attrs["pixel_size_m"]),
-                diffuser_detector_distance_m=float(attrs["diffuser_detector_distance_m"]),
-                coherence_length_x_m=coherence[0],
-                coherence_length_y_m=coherence[1],
-                fft_workers=fft_workers,
-                **chosen,
-            )
+            stored = None if recon_path is None else _stored_diffuser(str(recon_path), p)
+            if stored is None:
+                t = _fit_diffuser(reference, attrs, coherence, options, fft_workers)
+            else:
+                t = resolve_device(device).asarray(stored)
+            _DIFFUSERS[key] = t
         return _DIFFUSERS[key]
 
 
@@ -135,7 +224,7 @@ def _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, co
     else:
         sample = _read_corrected(g, "projections", (p, a), flat, dark, corrected)
         # as read: retrieve_projection repairs its spikes, and the diffuser fit (once per
-        # position and worker) repairs its own copy
+        # position, :func:`_fit_diffusers`) repaired its own copy
         reference = _read_corrected(g, "reference", p, flat, dark, corrected)
     xp = resolve_device(device)
     extra = {}
@@ -147,6 +236,7 @@ def _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, co
     if options.get("method", "pwf") == "pwf":
         extra["diffuser"] = _position_diffuser(
             scan_path,
+            recon_path,
             p,
             xp.asarray(reference),
             g.attrs,
@@ -386,6 +476,20 @@ def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, co
     _say(f"retrieve: {missing} of {done.size} projections to compute ({done.size - missing} already done)")
     t0 = time.perf_counter()
     try:
+        if opts.get("method", "pwf") == "pwf":
+            positions = sorted({p for chain in chains for p, _ in chain})
+            fit_s = _fit_diffusers(
+                runner,
+                recon_path,
+                positions,
+                scan_path=scan_path,
+                options=opts,
+                device=device,
+                fft_workers=runner.fft_workers(),
+                coherence=coherence,
+            )
+            if fit_s:
+                grp.attrs["diffuser_fit_s"] = json.dumps({str(p): round(t, 3) for p, t in fit_s.items()})
         chained = runner.map(
             _retrieve_chain,
             chains,
@@ -411,6 +515,7 @@ def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, co
     if results:
         grp.attrs["retrieval_wall_s"] = wall
         grp.attrs["retrieval_task_s_mean"] = float(np.mean([r[5] for r in results]))
+        grp.attrs["retrieval_peak_rss_mb"] = float(max(r[6] for r in results))  # of any one worker process
     scan_io.consolidate(recon_path)
     return {"computed": len(results), "wall_s": wall, "coherence": coherence, "tasks": results}
 
@@ -508,7 +613,7 @@ def _read_sinogram(g, recon_path, name, p, rows, b) -> tuple[np.ndarray | None, 
     return None, damaged
 
 
-def _tomo_task(item, *, recon_path, center_m, device, fft_workers):
+def _tomo_task(item, *, recon_path, center_m, device, fft_workers, fbp):
     """FBP of one (position, row block); returns the damaged chunks it found (then nothing is
     written and the block stays not done)."""
     import zarr
@@ -532,12 +637,12 @@ def _tomo_task(item, *, recon_path, center_m, device, fft_workers):
             return [str(d) for d in damaged]
     # one volume at a time: delta is written before beta's FBP (the task's peak, issue #29)
     for name, out, sign in (("phase", "delta", -1.0), ("attenuation", "beta", 1.0)):
-        fbp = to_numpy(
-            tomography.filtered_back_projection(xp.asarray(sinograms.pop(name)), angles, pix, center_m, fft=fft)
-        )
-        fbp *= np.float32(sign * wl / (2 * np.pi))  # tomography.to_refractive_index, in place
-        g[out][p, rows] = tomography.remove_background(fbp).astype(np.float32, copy=False)
-        del fbp
+        sino = xp.asarray(sinograms.pop(name))
+        slices = to_numpy(tomography.back_projection(sino, angles, pix, center_m, fft=fft, method=fbp))
+        del sino
+        slices *= np.float32(sign * wl / (2 * np.pi))  # tomography.to_refractive_index, in place
+        g[out][p, rows] = tomography.remove_background(slices).astype(np.float32, copy=False)
+        del slices
     g["tomo_done"][p, b] = 1
     return []
 
@@ -568,11 +673,17 @@ def tomo_scan(
     device: str = "cpu",
     center_m: float | None = None,
     runner: Runner | None = None,
+    fbp: str = "auto",
 ) -> dict:
-    """Tomography stage: FBP of phase and attenuation per (position, row block) -> delta, beta."""
+    """Tomography stage: FBP of phase and attenuation per (position, row block) -> delta, beta.
+
+    ``fbp`` (:data:`tomography.FBP_METHODS`): "auto" is gridding where its NUFFT is installed.
+    The method used is recorded; tomograms made by another are made again, never mixed.
+    """
     import zarr
 
     check_scheduler(scheduler)
+    fbp = tomography.resolve_fbp(fbp, resolve_device(device) if "://" not in scheduler else np)
     path = str(Path(recon_path).resolve())
     if not Path(path).exists():
         raise scan_io.ScanError(f"{path}: no such reconstruction store; run 'pwf-dask retrieve' first")
@@ -589,7 +700,7 @@ def tomo_scan(
             raise RetrievalDamaged(
                 f"{exc} (projection {exc.index[:2]}); marked not done: rerun 'pwf-dask retrieve' (or 'run')"
             ) from None
-    _create_tomograms(g, float(center_m), estimated)
+    _create_tomograms(g, float(center_m), estimated, fbp)
     own = runner is None
     runner = runner or Runner(scheduler)
     try:
@@ -597,6 +708,7 @@ def tomo_scan(
         todo = [(int(p), int(b)) for p, b in zip(*np.nonzero(done == 0))]
         where = "estimated" if estimated else "given"
         _say(f"tomo: rotation centre {center_m * 1e6:+.2f} µm ({where}); {len(todo)} of {done.size} blocks to compute")
+        t0 = time.perf_counter()
         found = runner.map(
             _tomo_task,
             todo,
@@ -606,6 +718,7 @@ def tomo_scan(
             total=done.size,
             recon_path=path,
             center_m=float(center_m),
+            fbp=fbp,
             device=device,
             fft_workers=runner.fft_workers(),
         )
@@ -618,8 +731,11 @@ def tomo_scan(
             f"{len(damaged)} retrieved chunks missing or damaged (first: {damaged[0]}); their projections are "
             "marked not done: rerun 'pwf-dask retrieve' (or 'run') to recompute them"
         )
+    wall = time.perf_counter() - t0
+    if todo:
+        g.attrs["tomo_wall_s"] = wall
     scan_io.consolidate(path)
-    return {"computed": len(todo), "rotation_center_m": float(center_m)}
+    return {"computed": len(todo), "rotation_center_m": float(center_m), "wall_s": wall}
 
 
 def _check_retrieved(path: str, g) -> None:
@@ -643,10 +759,11 @@ def _check_retrieved(path: str, g) -> None:
         raise scan_io.ScanError(f"{path}: one angle; tomography needs >= 2 (its phase and attenuation are complete)")
 
 
-def _create_tomograms(g, center_m: float, estimated: bool) -> None:
+def _create_tomograms(g, center_m: float, estimated: bool, fbp: str = "backproject") -> None:
     """The delta/beta arrays and their bookkeeping, new unless they exist for this centre (their
     attributes are written last: an interrupted creation is made again)."""
-    if "delta" in g and float(g.attrs.get("rotation_center_m", np.nan)) == center_m:
+    same_fbp = g.attrs.get("fbp", "backproject") == fbp  # stores before issue #31 were backprojected
+    if "delta" in g and float(g.attrs.get("rotation_center_m", np.nan)) == center_m and same_fbp:
         return
     npos, _, ny, nx = g["phase"].shape
     rb = g["phase"].chunks[2]
@@ -661,6 +778,7 @@ def _create_tomograms(g, center_m: float, estimated: bool) -> None:
             "rotation_center_m": center_m,
             "rotation_center_estimated": estimated,
             "filter": "ram-lak",
+            "fbp": fbp,
             "background_removal": "quadratic surface per slice",
         }
     )
@@ -694,7 +812,7 @@ def _even_odd_volumes(path, g, name, p, center_m, wl, sign):
     vols = []
     for idx in halves:
         sino = integrity.read_checked(path, g[name], name, p)[idx]
-        vol = tomography.filtered_back_projection(sino, angles[idx], pix, center_m)
+        vol = tomography.back_projection(sino, angles[idx], pix, center_m, method=g.attrs.get("fbp", "backproject"))
         vols.append(tomography.remove_background(sign * wl / (2 * np.pi) * vol))
     return vols
 
@@ -721,6 +839,7 @@ def fsc_scan(recon_path, *, split: str = "auto", criterion: str = "1/4", pairs: 
     pix = float(g.attrs["pixel_size_m"])
     wl = wavelength_m(float(g.attrs["energy_eV"]))
     center = float(g.attrs["rotation_center_m"])
+    t0 = time.perf_counter()
     curves: dict[str, list] = {"delta": [], "beta": []}
     labels = []
     if split == "positions":
@@ -769,6 +888,7 @@ def fsc_scan(recon_path, *, split: str = "auto", criterion: str = "1/4", pairs: 
         summary[name] = res[criterion]
     if "simulation_phantom" in g.attrs:
         summary.update(_fsc_truth(g, f, pix))
+    g.attrs["fsc_wall_s"] = time.perf_counter() - t0
     scan_io.consolidate(path)
     return summary
 
@@ -811,10 +931,12 @@ def run_scan(
     split: str = "auto",
     center_m: float | None = None,
     runner: Runner | None = None,
+    fbp: str = "auto",
     **retrieve_options,
 ) -> dict:
     """All stages on one scheduler connection: retrieve, tomo, fsc. A single-angle scan (a
     radiograph) stops after retrieval: ``tomo`` and ``fsc`` are then None."""
+    tomography.resolve_fbp(fbp)  # a bad name fails before anything is written
     own = runner is None
     runner = runner or Runner(scheduler)
     try:
@@ -822,14 +944,14 @@ def run_scan(
         if _n_angles(recon_path) < 2:
             return {"retrieve": r, "tomo": None, "fsc": None}
         try:
-            t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner)
+            t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner, fbp=fbp)
         except RetrievalDamaged as exc:  # recompute what tomography found damaged, once
             _say(f"run: {exc}; recomputing")
             again = retrieve_scan(
                 scan_path, recon_path, scheduler=scheduler, device=device, runner=runner, **retrieve_options
             )
             r["computed"] += again["computed"]
-            t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner)
+            t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner, fbp=fbp)
     finally:
         if own:
             runner.close()

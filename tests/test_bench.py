@@ -60,3 +60,22 @@ def test_bench_accuracy_writes_one_row_per_run_with_errors_against_the_truth(tmp
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "no scene for preset 'paper'" in err
     assert not (tmp_path / "none").exists()
+
+
+def test_bench_fbp_quick_times_both_fbps_side_by_side(tmp_path):
+    assert cli.main(["bench", "fbp", "--quick", "--out", str(tmp_path)]) == 0
+    (row,) = list(csv.DictReader(open(tmp_path / "bench_fbp_cpu.csv")))
+    assert float(row["speedup"]) == pytest.approx(float(row["backproject_s"]) / float(row["gridrec_s"]), rel=1e-6)
+    assert "with two threads" in (tmp_path / "bench_fbp_cpu.md").read_text()
+
+
+@pytest.mark.slow
+def test_bench_perscan_quick_measures_each_part_against_one_retrieval(tmp_path):
+    """Issue #31's per-scan work: calibration, diffuser fit and model build, each as a share of one
+    projection's retrieval timed in the same run."""
+    assert cli.main(["bench", "perscan", "--quick", "--out", str(tmp_path)]) == 0
+    (row,) = list(csv.DictReader(open(tmp_path / "bench_per_scan_cpu.csv")))
+    for part in ("calibration", "diffuser_fit", "model_build"):
+        share = 100 * float(row[f"{part}_s"]) / float(row["retrieval_s"])
+        assert float(row[f"{part}_pct"]) == pytest.approx(share, rel=1e-6)
+    assert int(row["iterations"]) > 0

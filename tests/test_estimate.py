@@ -5,7 +5,7 @@ import pytest
 
 from pwf_dask import cli, estimate, scan_io
 
-SPEEDS = estimate.Speeds(fft_s=0.01, fbp_s_per_element=2e-9)
+SPEEDS = estimate.Speeds(fft_s=0.01, fbp_row_s=0.05, fbp_row_s_per_angle=1e-3)
 
 
 def _metadata_scan(path, shape=(2160, 2560), angles=801, positions=1):
@@ -48,7 +48,7 @@ def test_time_divides_over_workers_and_counts_every_projection():
     eight = estimate.estimate_scan((256, 256), 100, 2, workers=8, iterations=200, speeds=SPEEDS)
     assert one[0].tasks == 200 and one[0].seconds == pytest.approx(200 * 200 * 16.0 * 0.01)
     assert eight[0].seconds == pytest.approx(one[0].seconds / 8)
-    assert one[1].seconds == pytest.approx(2 * 2e-9 * 100 * 256 * 256 * 256 * 2)
+    assert one[1].seconds == pytest.approx(2 * (0.05 + 1e-3 * 100) * 256 * 2)
 
 
 def test_estimate_command_prints_each_stage_and_warns_when_a_stage_cannot_fit(tmp_path, capsys):

@@ -80,7 +80,8 @@ def test_gpu_device_gives_the_cpu_result(cupy, tiny_scan, tmp_path):
     cpu, gpu = tmp_path / "cpu.zarr", tmp_path / "gpu.zarr"
     for path, device in ((cpu, "cpu"), (gpu, "gpu")):
         workflow.retrieve_scan(tiny_scan, path, device=device, **FAST)
-        workflow.tomo_scan(path, device=device)
+        # one FBP on both (auto is gridrec on the CPU, and on a GPU only with cufinufft)
+        workflow.tomo_scan(path, device=device, fbp="backproject")
     a, b = xr.open_zarr(cpu), xr.open_zarr(gpu)
     assert b.attrs["device"] == "gpu"
     for name in ("phase", "attenuation", "delta", "beta"):
@@ -114,6 +115,36 @@ def test_resume_computes_only_missing(tiny_scan, tmp_path, monkeypatch):
     res = workflow.retrieve_scan(tiny_scan, part, **FAST)
     assert res["computed"] == (done < 0).sum()
     stores_equal(full, part)
+
+
+def test_the_diffuser_is_fitted_once_per_position_and_kept(tiny_scan, tmp_path, monkeypatch):
+    """Issue #31: the diffuser fit is per-scan work, once per position (here 2 positions, 18
+    projections) whatever the tasks and workers; a resumed run, even in a fresh worker, reads
+    the stored fit instead of fitting again, and retrieves the same projections from it."""
+    from pwf_dask import retrieval
+
+    calls = []
+    original = retrieval.estimate_diffuser
+
+    def counted(*args, **kw):
+        calls.append(1)
+        return original(*args, **kw)
+
+    monkeypatch.setattr(retrieval, "estimate_diffuser", counted)
+    workflow._DIFFUSERS.clear()
+    recon = tmp_path / "r.zarr"
+    workflow.retrieve_scan(tiny_scan, recon, **FAST)
+    assert len(calls) == 2
+    g = zarr.open_group(str(recon), mode="r+", use_consolidated=False)
+    for p in (0, 1):  # each on its own grid (the padding follows its coherence), NaN beyond it
+        t = workflow._stored_diffuser(str(recon), p)
+        assert np.isfinite(t).all() and t.shape[0] > 32 and t.shape[1] > 64
+    before = g["phase"][0, :4]
+    g["iterations"][0, :4] = -1
+    workflow._DIFFUSERS.clear()
+    workflow.retrieve_scan(tiny_scan, recon, **FAST)
+    assert len(calls) == 2
+    np.testing.assert_allclose(g["phase"][0, :4], before, rtol=1e-5, atol=1e-6)
 
 
 def test_angle_chains_keep_halves_and_positions_apart():

@@ -50,7 +50,7 @@ import json, resource, sys
 import numpy as np, zarr
 from pwf_dask import scan_io, workflow
 from pwf_dask.scan_io import ScanInfo
-nang, ny, nx, path = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
+nang, ny, nx, path, fbp = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5]
 info = ScanInfo(path="none", n_positions=1, angles_deg=np.linspace(0, 180, nang, endpoint=False), shape=(ny, nx),
     x_m=np.zeros(nx), y_m=np.zeros(ny), energy_eV=1e4, pixel_size_m=1e-6, sample_diffuser_distance_m=0.003,
     diffuser_detector_distance_m=0.02, coherence_length_x_m=None, coherence_length_y_m=None,
@@ -62,10 +62,10 @@ for a in range(nang):
     g["attenuation"][0, a] = rng.normal(size=(ny, nx)).astype(np.float32)
 g["iterations"][...] = 1
 g.attrs["rotation_center_m"] = 0.0
-workflow._create_tomograms(g, 0.0, False)
+workflow._create_tomograms(g, 0.0, False, fbp)
 rb = g["delta"].chunks[1]
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-workflow._tomo_task((0, 0), recon_path=path, center_m=0.0, device="cpu", fft_workers=1)
+workflow._tomo_task((0, 0), recon_path=path, center_m=0.0, device="cpu", fft_workers=1, fbp=fbp)
 print(json.dumps({"base_mb": base, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "rows": rb}))
 """
 
@@ -106,10 +106,11 @@ def main(argv=None) -> None:
                 m = _child(RETRIEVAL, ny, nx, up, tmp)
                 predicted = estimate.retrieval_peak_mb((ny, nx), up, positions=0)
                 rows.append(_row(f"retrieve, field_upsample {up}", f"{ny}x{nx}", m, predicted))
-        for nang, ny, nx in ((181, 64, 256), (361, 32, 512), (361, 25, 1024)):
-            m = _child(TOMO, nang, ny, nx, f"{tmp}/t{nang}_{nx}.zarr")
-            predicted = estimate.tomo_peak_mb(nang, m["rows"], nx)
-            rows.append(_row("tomo task", f"{nang} angles x {m['rows']} rows x {nx}", m, predicted))
+        for fbp in ("backproject", "gridrec"):
+            for nang, ny, nx in ((181, 64, 256), (361, 32, 512), (361, 25, 1024)):
+                m = _child(TOMO, nang, ny, nx, f"{tmp}/t{nang}_{nx}_{fbp}.zarr", fbp)
+                predicted = estimate.tomo_peak_mb(nang, m["rows"], nx, fbp)
+                rows.append(_row(f"tomo task, {fbp}", f"{nang} angles x {m['rows']} rows x {nx}", m, predicted))
         for ny, nx in ((32, 256), (64, 512), (16, 1024)):
             m = _child(FSC, ny, nx)
             rows.append(_row("fsc", f"{ny} x {nx} x {nx}", m, estimate.fsc_peak_mb(ny, nx)))
