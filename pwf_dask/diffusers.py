@@ -94,8 +94,10 @@ def _grain_kernels(rp: float, grain_shape: str, rng: np.random.Generator):
             turn = rng.uniform(0, 2 * np.pi)
             profiles.append(lambda y, x, s=sides, a=turn: _pyramid(y, x, rp, s, a))
     kernels = []
+    # the 16 sub-samples of every cell at once (one array pass per profile, not 16)
+    dy, dx = (a.reshape(-1, 1, 1) for a in np.meshgrid(sub, sub, indexing="ij"))
     for profile in profiles:
-        k = sum(profile(yy + dy, xx + dx) for dy in sub for dx in sub) / 16.0
+        k = profile(yy + dy, xx + dx).sum(axis=0) / 16.0
         kernels.append((yy.astype(int), xx.astype(int), k))
     if grain_shape == "mixed":  # half the grains round, half faceted
         shares = [0.5] + [0.5 / (len(kernels) - 1)] * (len(kernels) - 1)
@@ -142,25 +144,38 @@ def grain_thickness(
     frac /= frac.sum()
     mean_area = float(np.sum(frac * np.pi * centres**2))
     n_total = layers * coverage * ny * nx * spacing_m**2 / mean_area
-    import scipy.fft
-
-    from .backend import default_fft_workers
-
-    workers = default_fft_workers()
-    spectrum = np.zeros((ny, nx // 2 + 1), complex)
+    thickness = np.zeros(ny * nx)
     for r, f in zip(centres, frac):
         kernels, shares = _grain_kernels(r / spacing_m, grain_shape, rng)
         for (ky, kx, k), share in zip(kernels, shares):
             n = rng.poisson(n_total * f * share)
             if n == 0:
                 continue
-            # grain centres counted per cell (bincount: np.add.at's result, 10x faster)
-            cells = rng.integers(0, ny, n) * nx + rng.integers(0, nx, n)
-            impulses = np.bincount(cells, minlength=ny * nx).astype(float).reshape(shape)
-            kernel = np.zeros(shape)
-            kernel[ky % ny, kx % nx] = k * spacing_m
-            spectrum += scipy.fft.rfft2(impulses, workers=workers) * scipy.fft.rfft2(kernel, workers=workers)
-    return scipy.fft.irfft2(spectrum, s=shape, workers=workers)
+            _splat(thickness, (ny, nx), rng.integers(0, ny, n), rng.integers(0, nx, n), ky, kx, k * spacing_m)
+    return thickness.reshape(shape)
+
+
+#: grain-by-kernel index pairs per batch of :func:`_splat` (bounds its temporaries, ~50 MB)
+_SPLAT_BATCH = 1 << 22
+
+
+def _splat(thickness, shape, cy, cx, ky, kx, kernel) -> None:
+    """Add ``kernel`` (cell offsets ky, kx) centred on every grain (cy, cx), periodically.
+
+    The same sum as convolving the grains' impulses with the kernel by FFT, which the grains'
+    sparsity makes wasteful: a few thousand grains of ~150 kernel cells against two full-frame
+    FFTs per grain size and shape (8 x 5 of them); the template calibration, which synthesises
+    26 such diffusers, became ~5x faster."""
+    ny, nx = shape
+    ky, kx, w = ky.ravel(), kx.ravel(), kernel.ravel()
+    keep = w != 0
+    ky, kx, w = ky[keep], kx[keep], w[keep]
+    step = max(1, _SPLAT_BATCH // max(1, w.size))
+    for i in range(0, cy.size, step):
+        rows = (cy[i : i + step, None] + ky) % ny
+        cols = (cx[i : i + step, None] + kx) % nx
+        flat = (rows * nx + cols).ravel()
+        thickness += np.bincount(flat, weights=np.broadcast_to(w, (rows.shape[0], w.size)).ravel(), minlength=ny * nx)
 
 
 def transmission(thickness_m: np.ndarray, energy_eV: float, material: str = DEFAULT_MATERIAL) -> np.ndarray:

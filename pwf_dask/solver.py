@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from . import optics
+from . import kernels, optics
 from .backend import FFT, abs2, complex_dtype, complex_exp, inner, real_dtype
 
 #: The paper's stop rule: normalised correlation of successive fields > 10^-0.00001.
@@ -411,13 +411,13 @@ def physical_model(psi, model: PWFModel) -> Evaluation:
     s = model.upsample
     if s == 1:
         v = fft.ifft2(spec, overwrite=True)
-        intensity = abs2(v)
+        intensity = kernels.intensity(v)
         f = intensity if model.otf is None else _filter_real(intensity, model.otf, fft)
     else:
         fine = (model.shape[0] * s, model.shape[1] * s)
         v = fft.ifft2(_pad_spectrum(spec, fine, half=False), overwrite=True)
         v *= s * s
-        intensity = abs2(v)
+        intensity = kernels.intensity(v)
         spec_i = _crop_spectrum(fft.rfft2(intensity), model.shape, half=True)
         if model.otf is not None:
             spec_i *= model.otf
@@ -428,11 +428,7 @@ def physical_model(psi, model: PWFModel) -> Evaluation:
 
 def residual(ev: Evaluation, y, model: PWFModel) -> Evaluation:
     """e = f - y on measured pixels (the paper's e_r = y_r - f_r with the sign folded in)."""
-    r = ev.f - y
-    if model.mask is not None:
-        r *= model.mask
-    ev.r = r
-    ev.loss = float(model.xp.sum(r * r, dtype=np.float64))
+    ev.r, ev.loss = kernels.residual_and_loss(ev.f, y, model.mask)
     return ev
 
 
@@ -441,7 +437,7 @@ def wirtinger_derivative(ev: Evaluation, model: PWFModel):
 
     g = dJ_data/dRe(psi) + i dJ_data/dIm(psi) for J_data = L / (4 N_t), L of Eq. (lossFunction).
     """
-    xp, fft = model.xp, model.fft
+    fft = model.fft
     s = max(model.upsample, model.field_upsample)
     r = ev.r
     if s == 1:
@@ -461,7 +457,7 @@ def wirtinger_derivative(ev: Evaluation, model: PWFModel):
     c *= model.t_conj
     if model.kernel1 is not None:
         c = _propagate(c, model.kernel1_conj, fft, overwrite=True)
-    c *= xp.conj(ev.x)
+    c = kernels.times_conj(c, ev.x)
     g = c if model.field_upsample == 1 else restrict_field(c, model.shape, fft)
     return g.astype(model.cdtype, copy=False)
 
@@ -485,9 +481,7 @@ def _regularizer(psi, model: PWFModel):
             continue
         value_weights, direction_filter = term
         sp = fft.rfft2(xp.ascontiguousarray(part))
-        power = abs2(sp)
-        power *= value_weights
-        value += 0.5 * float(xp.sum(power)) / n
+        value += 0.5 * kernels.weighted_power(sp, value_weights) / n
         sp *= direction_filter
         terms.append(sp)
     return value, terms[0], terms[1]
@@ -816,11 +810,12 @@ def pwf(
                 break
         else:
             if last is not None:
-                dpsi = psi - last[0]
+                dpsi, step_sq = kernels.step_and_norm(psi, last[0])
                 recent_steps = [*recent_steps[-1:], dpsi]
-                steps.append(math.sqrt(inner(dpsi, dpsi).real / dpsi.size))
-                x_norm = math.sqrt(inner(ev.x, ev.x).real)
-                corr = abs(inner(last[3].x, ev.x)) / (x_norm * last_x_norm)
+                steps.append(math.sqrt(step_sq / dpsi.size))
+                x_sq, overlap = kernels.field_correlation(ev.x, last[3].x)
+                x_norm = math.sqrt(x_sq)
+                corr = abs(overlap) / (x_norm * last_x_norm)
                 streak = streak + 1 if 1.0 - corr < tol else 0
                 last_x_norm = x_norm
             else:
@@ -856,13 +851,12 @@ def pwf(
                 converged = True
                 reason = "converged"
                 break
-        phi = d * (-eta)
-        phi += psi
+        # phi = psi - eta d (line 12) and whether the momentum phi - phi_prev points uphill
+        phi, uphill = kernels.descent_point(psi, d, phi_prev, eta)
         mu_prev = mu
         mu = 0.5 * (1.0 + math.sqrt(1.0 + 4.0 * mu * mu))
         beta = (mu_prev - 1.0) / mu
-        dphi = phi - phi_prev
-        if restart == "gradient" and beta > 0 and (inner(d, dphi).real > 0 or stalled >= stall_limit):
+        if restart == "gradient" and beta > 0 and (uphill > 0 or stalled >= stall_limit):
             # the momentum points uphill along the (preconditioned) gradient at psi, or has
             # made no new low of J for ``stall_limit`` iterations (the uphill test can stay
             # silent for ever while J oscillates: at L1 = 0, one 1000-iteration run)
@@ -870,12 +864,7 @@ def pwf(
             mu, beta = 1.0, 0.0
             stalled = 0
         momentum_used = beta > 0
-        if momentum_used:
-            dphi *= beta
-            dphi += phi
-            psi = dphi
-        else:
-            psi = phi
+        psi = kernels.momentum_point(phi, phi_prev, beta) if momentum_used else phi
         phi_prev = phi
     psi_best, _, _, ev_best = last
     return PWFSolution(

@@ -1,0 +1,103 @@
+"""The fused passes of the iteration (pwf_dask.kernels): the compiled loops give the NumPy
+expressions they replace, to float32 rounding, and the solver's direction is today's."""
+
+import numpy as np
+import pytest
+
+from pwf_dask import kernels, optics, solver
+from pwf_dask.backend import FFT
+
+pytest.importorskip("numba")
+
+
+@pytest.fixture
+def arrays():
+    rng = np.random.default_rng(0)
+    shape = (67, 130)
+
+    def c():
+        return (rng.normal(size=shape) + 1j * rng.normal(size=shape)).astype(np.complex64)
+
+    def r():
+        return rng.normal(size=shape).astype(np.float32)
+
+    return c, r
+
+
+def both(fn, *args):
+    """fn's result with the compiled loops and with the array-module expressions."""
+    compiled = fn(*[a.copy() if isinstance(a, np.ndarray) else a for a in args])
+    saved = kernels._numba()
+    kernels.numba = None
+    try:
+        generic = fn(*[a.copy() if isinstance(a, np.ndarray) else a for a in args])
+    finally:
+        kernels.numba = saved
+    return compiled, generic
+
+
+def close(a, b):
+    if isinstance(a, tuple):
+        for x, y in zip(a, b):
+            close(x, y)
+    else:
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-6, atol=1e-6)
+
+
+def test_each_fused_pass_gives_the_numpy_expression(arrays):
+    c, r = arrays
+    mask = (r() > 0).astype(np.float32)
+    x, y, z = c(), c(), c()
+    close(*both(kernels.intensity, x))
+    close(*both(kernels.residual_and_loss, r(), r(), None))
+    close(*both(kernels.residual_and_loss, r(), r(), mask))
+    close(*both(kernels.times_conj, x, y))
+    close(*both(kernels.weighted_power, x, np.abs(r())))
+    close(*both(kernels.step_and_norm, x, y))
+    close(*both(kernels.field_correlation, x, y))
+    close(*both(kernels.descent_point, x, y, z, 0.37))
+    close(*both(kernels.momentum_point, x, y, 0.81))
+
+
+def test_fused_passes_follow_the_definitions(arrays):
+    """Against the definitions written out (not just against the fallback)."""
+    c, r = arrays
+    x, prev, d = c(), c(), c()
+    norm, overlap = kernels.field_correlation(x, prev)
+    assert norm == pytest.approx(float(np.sum(np.abs(x.astype(complex)) ** 2)), rel=1e-6)
+    assert overlap == pytest.approx(complex(np.vdot(prev.astype(complex), x.astype(complex))), rel=1e-6)
+    phi, uphill = kernels.descent_point(x, d, prev, 0.5)
+    np.testing.assert_allclose(phi, x - 0.5 * d, rtol=1e-6, atol=1e-6)
+    assert uphill == pytest.approx(float(np.vdot(d.astype(complex), (phi - prev).astype(complex)).real), rel=1e-5)
+
+
+def test_the_solver_gives_the_unfused_direction_and_iterates():
+    """Issue #31: the fused iteration gives the reference direction (and 30 iterations the same
+    psi) to float32 tolerance, on a padded frame with L1 > 0 (mask, OTF, regularizer)."""
+    n, pad = 64, 9
+    rng = np.random.default_rng(1)
+    t = np.exp(0.3j * rng.normal(size=(n + 2 * pad, n + 2 * pad))).astype(np.complex64)
+    model = solver.build_model(
+        t,
+        frame_shape=(n, n),
+        pixel_size_m=0.65e-6,
+        wavelength=optics.wavelength_m(1e4),
+        sample_diffuser_distance_m=3e-3,
+        diffuser_detector_distance_m=0.02,
+        coherence_length_x_m=3.47e-6,
+        coherence_length_y_m=4.31e-6,
+        pad=pad,
+        fft=FFT.for_module(np, 1),
+    )
+    y = np.zeros(t.shape, np.float32)
+    y[pad : pad + n, pad : pad + n] = 0.9 + 0.2 * rng.random((n, n))
+    psi = (0.01 * rng.normal(size=t.shape) + 0.1j * rng.normal(size=t.shape)).astype(np.complex64)
+
+    def run():
+        j, d, _ = solver.objective_and_direction(psi, y, model)
+        return j, d, solver.pwf(y, model, max_iter=30, tol=0).psi
+
+    (j1, d1, p1), (j0, d0, p0) = both(lambda: run())
+    assert j1 == pytest.approx(j0, rel=1e-6)
+    np.testing.assert_allclose(d1, d0, atol=1e-5 * np.abs(d0).max())
+    np.testing.assert_allclose(p1, p0, atol=1e-4 * np.abs(p0).max())
