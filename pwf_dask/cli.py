@@ -121,7 +121,7 @@ def retrieval_kwargs(args) -> dict:
         gamma=args.gamma,
         alpha=args.alpha,
         phase_scale=args.phase_scale,
-        field_upsample=args.field_upsample if args.field_upsample == "auto" else int(args.field_upsample),
+        field_upsample=args.field_upsample,
         coherence_method=args.coherence_method,
         diffuser_model=args.diffuser_model,
         diffuser_material=args.diffuser_material,
@@ -250,7 +250,7 @@ def _bench(args) -> int:
         "scan": lambda: bench.run_scan_benchmark(args.out),
         "fbp": lambda: bench.run_fbp_benchmark(args.out, quick=args.quick),
         "perscan": lambda: bench.run_per_scan_benchmark(args.out, quick=args.quick),
-        "fullwidth": lambda: bench.run_fullwidth_benchmark(args.out, quick=args.quick),
+        "fullwidth": lambda: bench.run_fullwidth_benchmark(args.out, quick=args.quick, work_dir=args.work_dir),
         "stability": lambda: stability.run_stability_benchmark(args.out, quick=args.quick, axes=args.axes),
     }
     if args.what not in runs:
@@ -304,6 +304,15 @@ def add_tomo_options(p) -> None:
     )
 
 
+def _field_upsample(text: str):
+    from .retrieval import check_field_upsample
+
+    try:
+        return check_field_upsample(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e).replace("field_upsample must be", "must be")) from None
+
+
 def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     """Every retrieval option of ``retrieve`` and ``run`` (read back by :func:`retrieval_kwargs`)."""
     from .detector import DEFAULT_OUTLIER_SIGMA
@@ -336,9 +345,9 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--field-upsample",
         default="auto",
-        choices=["auto", "1", "2", "3"],
-        help="sample field and propagation on a finer grid: auto (pixels coarser than 0.209 coherence lengths, "
-        "or a phase gradient above pi/2 per pixel: thick samples), 1 (the paper's detector grid), 2, 3",
+        type=_field_upsample,
+        help="sample field and propagation on a finer grid: auto (1.5x for a diffuser whose spectrum fills the "
+        "detector band, 2x more for thick samples), 1 (the paper's detector grid), or a factor such as 1.5 or 2",
     )
     p.add_argument(
         "--coherence-method",
@@ -565,7 +574,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--iterations", type=int, default=250, help="PWF iterations per projection (250: the median with angle chains)"
     )
     m.add_argument(
-        "--field-upsample", type=int, default=1, choices=[1, 2, 3], help="the sample field's grid (run's option)"
+        "--field-upsample", type=_field_upsample, default=1, help="the sample field's grid factor (run's option)"
     )
     m.add_argument(
         "--fbp", default="auto", choices=["auto", "gridrec", "backproject"], help="tomo's FBP (run's option)"
@@ -614,6 +623,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--device", default="cpu", choices=["cpu", "gpu", "auto"], help="NumPy or CuPy numerics")
     b.add_argument("--out", default="workflows/results", help="folder of the result files")
     b.add_argument("--quick", action="store_true", help="one small size or scene (smoke test)")
+    b.add_argument(
+        "--work-dir",
+        default=None,
+        help="fullwidth: folder of its scan and reconstruction (default: a new temporary one); given again, an "
+        "interrupted run resumes there",
+    )
     b.add_argument(
         "--preset",
         default="demo",

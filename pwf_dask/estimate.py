@@ -102,7 +102,15 @@ def measure_speeds(shape: tuple[int, int], fft_workers: int = 1, pad: int = 17, 
     return Speeds(fft_s, max(0.0, seconds[0] - 16 * per_angle), per_angle, method)
 
 
-def retrieval_peak_mb(shape: tuple[int, int], field_upsample: int = 1, positions: int = 1, pad: int = 17) -> float:
+def iteration_fft_times(variant: str, field_upsample: float = 1) -> float:
+    """An iteration's cost in FFTs of the padded detector grid: measured for the variants of
+    :data:`ITERATION_FFT_TIMES`, other field grids scaled from the 2x grid's by their pixels."""
+    if variant in ITERATION_FFT_TIMES:
+        return ITERATION_FFT_TIMES[variant]
+    return ITERATION_FFT_TIMES["field on 2x grid"] * field_upsample**2 / 4
+
+
+def retrieval_peak_mb(shape: tuple[int, int], field_upsample: float = 1, positions: int = 1, pad: int = 17) -> float:
     ny, nx = padded_grid(shape, pad)
     pixels = ny * nx
     diffusers = min(8, positions) * pixels * field_upsample**2 * 8  # complex64 transmission each
@@ -127,7 +135,7 @@ def estimate_scan(
     *,
     workers: int = 1,
     iterations: int = DEFAULT_ITERATIONS,
-    field_upsample: int = 1,
+    field_upsample: float = 1,
     upstream_or_l1_zero: bool = False,
     speeds: Speeds,
 ) -> list[StageEstimate]:
@@ -136,8 +144,11 @@ def estimate_scan(
     from .scan_io import row_block
 
     ny, nx = shape
-    variant = "field on 2x grid" if field_upsample > 1 else ("l1=0" if upstream_or_l1_zero else "l1>0")
-    per_projection = iterations * ITERATION_FFT_TIMES[variant] * speeds.fft_s
+    variant = "l1=0" if upstream_or_l1_zero else "l1>0"
+    if field_upsample > 1:
+        variant = f"field on {field_upsample:g}x grid"
+    fft_times = iteration_fft_times(variant, field_upsample)
+    per_projection = iterations * fft_times * speeds.fft_s
     projections = n_angles * n_positions
     rb = row_block(ny, nx)
     blocks = n_positions * -(-ny // rb)
@@ -149,8 +160,7 @@ def estimate_scan(
             projections,
             base + retrieval_peak_mb(shape, field_upsample, n_positions),
             projections * per_projection / workers,
-            f"{iterations} iterations x {ITERATION_FFT_TIMES[variant]:g} FFT-times ({variant}) "
-            f"x {speeds.fft_s * 1e3:.2f} ms per FFT",
+            f"{iterations} iterations x {fft_times:g} FFT-times ({variant}) x {speeds.fft_s * 1e3:.2f} ms per FFT",
         ),
         StageEstimate(
             "tomo",
@@ -210,7 +220,7 @@ def os_memory_bytes() -> int:
 
 
 def estimate_for_scan(
-    scan_path, *, workers: int = 1, iterations: int = DEFAULT_ITERATIONS, field_upsample: int = 1, fbp: str = "auto"
+    scan_path, *, workers: int = 1, iterations: int = DEFAULT_ITERATIONS, field_upsample: float = 1, fbp: str = "auto"
 ) -> tuple[list[StageEstimate], dict]:
     """:func:`estimate_scan` for a scan store (its metadata only; nothing is read but the
     coordinates), with the speeds measured here. Returns the stages and the scan's sizes."""

@@ -290,6 +290,7 @@ _OPTIONAL = (
     "converged",
     "residual_rmse",
     "outlier_pixels",
+    "retrieval_seconds",
     "preview_residual",
     "diffuser",  # a missing or damaged fit is made again by the next run
     "diffuser_drift_y_px",

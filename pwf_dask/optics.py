@@ -59,15 +59,17 @@ def check_plausible_geometry(**values: float | None) -> None:
             raise ValueError(f"{name} = {value:g} is outside {low:g} to {high:g}: expected {hint}")
 
 
-def frequency_grid(shape: tuple[int, int], spacing: float = 1.0, half: bool = False):
-    """Spatial frequencies (v, u) in cycles per unit of ``spacing`` (float64, host).
+def frequency_grid(shape: tuple[int, int], spacing: float | tuple[float, float] = 1.0, half: bool = False):
+    """Spatial frequencies (v, u) in cycles per unit of ``spacing`` (float64, host); a pair
+    is (y, x) spacing.
 
     ``v`` has shape (ny, 1) and ``u`` shape (1, nx) (or nx // 2 + 1 with ``half=True``, the
     rfft layout), so they broadcast to the spectrum's shape.
     """
     ny, nx = shape
-    v = np.fft.fftfreq(ny, d=spacing)[:, None]
-    u = (np.fft.rfftfreq(nx, d=spacing) if half else np.fft.fftfreq(nx, d=spacing))[None, :]
+    dy, dx = spacing if isinstance(spacing, tuple) else (spacing, spacing)
+    v = np.fft.fftfreq(ny, d=dy)[:, None]
+    u = (np.fft.rfftfreq(nx, d=dx) if half else np.fft.fftfreq(nx, d=dx))[None, :]
     return v, u
 
 
@@ -77,7 +79,7 @@ def _to(xp: ModuleType, a: np.ndarray, dtype):
 
 def angular_spectrum_kernel(
     shape: tuple[int, int],
-    pixel_size_m: float,
+    pixel_size_m: float | tuple[float, float],
     wavelength: float,
     distance_m: float,
     xp: ModuleType = np,
@@ -88,6 +90,7 @@ def angular_spectrum_kernel(
     The constant exp(i 2 pi L / lambda) is dropped (it does not change any intensity), and
     w - 1/lambda is evaluated as -q^2 / (1/lambda + w), which has no cancellation. Evanescent
     components (q > 1/lambda; never reached for X-rays at micrometre pixels) are zeroed.
+    A pair ``pixel_size_m`` is the (y, x) pixel of a grid whose axes differ.
     """
     v, u = frequency_grid(shape, pixel_size_m)
     q2 = u * u + v * v

@@ -163,7 +163,8 @@ FIELD_UPSAMPLE_GRADIENT_RAD_PER_PX = math.pi / 2
 
 
 #: Share of the diffuser transmission's power above :data:`DIFFUSER_ALIASING_FREQUENCY` (cycles
-#: per pixel) from which ``field_upsample="auto"`` puts the field on a 2x finer grid. A
+#: per pixel) from which ``field_upsample="auto"`` puts the field on a finer grid
+#: (:data:`DIFFUSER_FIELD_UPSAMPLE`). A
 #: single-material fit to coarse grains (P3000 at 0.65 um pixels) is a phase screen whose
 #: gradients reach ~pi rad/px: its spectrum runs to the Nyquist frequency, and the sample's
 #: tilt wraps that part around the detector grid, moving it the wrong way. Measured (256^2,
@@ -172,6 +173,34 @@ FIELD_UPSAMPLE_GRADIENT_RAD_PER_PX = math.pi / 2
 #: 4.5 um 0.117, 0.861 -> 1.004. The paper's zero-phase estimate is band-limited (~0.01).
 DIFFUSER_ALIASING_FRACTION = 0.06
 DIFFUSER_ALIASING_FREQUENCY = 0.35
+#: The field grid ``"auto"`` takes for an aliasing diffuser. Its Nyquist frequency, 0.75
+#: cycles per detector pixel, holds t's spectrum (to 0.5) tilted by sample gradients up to
+#: pi/2 rad/px. Measured (P3000, calibrated lengths, 1e4 ph/px; phase gain / largest bead's
+#: contrast at 1, 1.25, 1.5, 2x): 256^2 seeds 1-3 0.907-0.882-0.889 / 1.002-0.998-0.986 /
+#: 1.008-1.001-0.993 / 1.008-1.000-0.992; 512^2 0.896 / 0.991 / 0.994 / 0.994, bead +4.2 %
+#: at 1.5x and 2x; 1.5x costs 2.25x the detector grid's pixels against 2x's 4x (workflows/results/field_grid.md).
+DIFFUSER_FIELD_UPSAMPLE: float = 1.5
+
+
+def field_gradient_limit(field_upsample: float, diffuser_aliases: bool) -> float:
+    """The solution's phase gradient (rad per detector pixel) above which ``"auto"`` goes on
+    with a field grid twice as fine: pi/2 per step of the grid, and for an aliasing diffuser
+    (whose spectrum fills the detector band) the tilt that wraps it, pi (s - 1)."""
+    limit = FIELD_UPSAMPLE_GRADIENT_RAD_PER_PX * field_upsample
+    return min(limit, math.pi * (field_upsample - 1)) if diffuser_aliases else limit
+
+
+def check_field_upsample(field_upsample) -> int | float | str:
+    """``"auto"`` or a number >= 1 (an integer where it is one); else a one-line ValueError."""
+    if field_upsample == "auto":
+        return field_upsample
+    try:
+        s = float(field_upsample)
+    except (TypeError, ValueError):
+        s = math.nan
+    if not (1 <= s <= 8):
+        raise ValueError(f"field_upsample must be 'auto' or a number from 1 to 8, got {field_upsample!r}")
+    return int(s) if s.is_integer() else s
 
 
 def diffuser_aliasing(t, fft: FFT | None = None) -> float:
@@ -463,11 +492,12 @@ def retrieve_projection(
     ``field_upsample`` evaluates exp(psi), t and both propagations on a finer grid (psi stays
     on the detector grid; :func:`pwf_dask.solver.build_model`): ``"auto"`` starts on the grid
     of :func:`auto_field_upsample` (the detector grid unless the pixel is coarser than the
-    authors' working pixel), on a 2x grid at least when the diffuser estimate aliases there
+    authors' working pixel), on a :data:`DIFFUSER_FIELD_UPSAMPLE` (1.5x) grid at least when the
+    diffuser estimate aliases there
     (:func:`diffuser_aliasing` above :data:`DIFFUSER_ALIASING_FRACTION`: coarse grains), and
     goes on with one twice as fine when the solution's phase
-    gradient exceeds :data:`FIELD_UPSAMPLE_GRADIENT_RAD_PER_PX` per step of that grid (thick
-    samples); 1 is the paper's model.
+    gradient exceeds :func:`field_gradient_limit` (thick samples); 1 is the paper's model, and
+    a number >= 1 (fractional too) fixes the grid.
     ``initial`` starts Algorithm S1 from zero (the paper), from UMPA's one-image estimate
     (``"umpa"``), or from a given complex psi of the image's shape. ``restart`` is the
     momentum rule of :func:`pwf_dask.solver.pwf` (``"none"``: Algorithm S1 as printed);
@@ -532,8 +562,7 @@ def retrieve_projection(
     if restart not in solver.RESTARTS:
         raise ValueError(f"unknown restart {restart!r}: choose one of {', '.join(solver.RESTARTS)}")
     check_diffuser_drift(diffuser_drift)
-    if field_upsample != "auto" and not (str(field_upsample).isdigit() and int(field_upsample) >= 1):
-        raise ValueError(f"field_upsample must be 'auto' or an integer >= 1, got {field_upsample!r}")
+    field_upsample = check_field_upsample(field_upsample)
     # spikes: the reference is repaired (the diffuser estimate needs every pixel), the
     # sample's are left out of the data term (and repaired for the statistics that read it)
     ref, ref_outliers = repair_outliers(ref, outlier_sigma)
@@ -634,9 +663,9 @@ def retrieve_projection(
     if auto_field:
         first_field = auto_field_upsample(pixel_size_m, coherence_length_x_m, coherence_length_y_m)
         if aliasing > DIFFUSER_ALIASING_FRACTION:
-            first_field = max(first_field, 2)
+            first_field = max(first_field, DIFFUSER_FIELD_UPSAMPLE)
     else:
-        first_field = int(field_upsample)
+        first_field = field_upsample
     model = build(field_upsample=first_field)
     y_full = xp.zeros(shape, dtype=rdt)
     y_full[model.frame] = y / scale
@@ -674,7 +703,8 @@ def retrieve_projection(
     gradient = phase_gradient_rad_per_px(sol.psi[model.frame].imag) if auto_field else None
     iterations, history = sol.iterations, list(sol.objective_history)
     restarts, backtracks = sol.restarts, sol.backtracks
-    if auto_field and gradient > FIELD_UPSAMPLE_GRADIENT_RAD_PER_PX * first_field:
+    diffuser_aliases = auto_field and aliasing > DIFFUSER_ALIASING_FRACTION
+    if auto_field and gradient > field_gradient_limit(first_field, diffuser_aliases):
         # the model's grid aliases such gradients: go on from its psi on a grid twice as fine
         model = build(field_upsample=2 * first_field)
         sol = run(model, psi0=sol.psi)

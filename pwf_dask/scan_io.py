@@ -307,6 +307,7 @@ VARIABLE_ATTRS: dict[str, tuple[str, str]] = {
     "converged": ("1", "stop rule met before max_iter"),
     "residual_rmse": ("percent", "RMS data residual over the mean reference"),
     "outlier_pixels": ("1", "pixels repaired as outliers"),
+    "retrieval_seconds": ("s", "wall time of the projection's retrieval task (reading to writing)"),
     "diffuser": ("1", "fitted diffuser transmission t_r per position (real, imaginary), computational grid"),
     "preview_residual": ("percent", "data residual |y - f| of the first angle's projection (preview)"),
     "diffuser_drift_y_px": ("pixel", "measured speckle drift against the reference, rows"),
@@ -443,6 +444,8 @@ def _build_reconstruction(path: str, info: ScanInfo, params: dict) -> None:
     _create(g, "converged", (npos, nang), (1, 1), ("position", "angle"), "bool", False)
     _create(g, "residual_rmse", (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
     _create(g, "outlier_pixels", (npos, nang), (1, 1), ("position", "angle"), "int32", -1)
+    # what each projection cost, kept with it: a run killed and resumed still has every timing
+    _create(g, "retrieval_seconds", (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
     # the fit's per-pixel residual is kept for one projection per position: what a user checks
     # first (structure in it is a model error), at the cost of one frame, not one per angle
     _create(g, "preview_residual", (npos, ny, nx), (1, rb, nx), ("position", "y", "x"), "float32", np.nan)

@@ -86,8 +86,9 @@ class PWFModel:
     frame plus ``pad`` pixels each side, rounded to a fast FFT length); ``upsample`` > 1
     forms |v|^2 on a grid that many times finer, so the squared modulus is not aliased.
     ``field_upsample`` s > 1 carries the whole optical chain, exp(psi), P1, t and P2, on an
-    s-times finer grid (psi and t band-limited-interpolated), so that phase gradients up to
-    s pi rad per detector pixel displace the speckle the right way (see :func:`build_model`).
+    s-times finer grid ``field_shape`` (psi and t band-limited-interpolated), so that phase
+    gradients up to s pi rad per detector pixel displace the speckle the right way (see
+    :func:`build_model`).
     """
 
     xp: ModuleType
@@ -111,7 +112,8 @@ class PWFModel:
     rdtype: Any
     cdtype: Any
     info: dict = field(default_factory=dict)
-    field_upsample: int = 1
+    field_upsample: float = 1
+    field_shape: tuple[int, int] | None = None  # the field's grid; None: ``shape``
     #: per part of psi (Re, Im): (rfft weights of its value in J, its direction filter
     #: Re/Im(alpha) Gamma^2), or None where that part of alpha is 0; precomputed by build_model
     reg_terms: tuple = (None, None)
@@ -153,6 +155,14 @@ def fast_len(n: int) -> int:
     return int(scipy.fft.next_fast_len(int(n), real=False))
 
 
+def field_grid(shape: tuple[int, int], field_upsample: float) -> tuple[int, int]:
+    """The field's grid for ``field_upsample`` s: each side s times the computational grid's,
+    rounded up to a fast FFT length (exactly s times for an integer s, the grid being fast)."""
+    if field_upsample == 1:
+        return tuple(shape)
+    return tuple(fast_len(math.ceil(n * field_upsample - 1e-9)) for n in shape)
+
+
 def build_model(
     t,
     *,
@@ -172,7 +182,7 @@ def build_model(
     precision: str = "single",
     normalization: str = "paper",
     phase_scale: float | str = 1.0,
-    field_upsample: int = 1,
+    field_upsample: float = 1,
     bad_pixels=None,
     fft: FFT | None = None,
 ) -> PWFModel:
@@ -189,7 +199,8 @@ def build_model(
     wrong way and the speckle is displaced backwards (the thick-sample failure, docs/validation.md). The
     interpolated unwrapped phase keeps the tilt. The intensity is band-limited back to the
     detector grid as with ``upsample``. Costs about s^2 times the FFT work; s = 1 is the
-    paper's model, unchanged.
+    paper's model, unchanged. A fractional s (e.g. 1.5) puts the field on the next fast grid
+    (:func:`field_grid`), whose pixel differs slightly between the axes.
 
     ``bad_pixels`` (frame-shaped, True = not a measurement, e.g. a zinger) are left out of
     the data term, as the padding margin is: the residual is masked there.
@@ -211,14 +222,14 @@ def build_model(
                 raise ValueError(f"bad_pixels has shape {tuple(bad_pixels.shape)}, the frame {tuple(frame_shape)}")
             mask[frame] *= 1 - xp.asarray(bad_pixels, dtype=rdt)
     t = t.astype(cdt, copy=False)
-    field_upsample = int(field_upsample)
-    if field_upsample < 1:
+    field_upsample = int(field_upsample) if float(field_upsample).is_integer() else float(field_upsample)
+    if not field_upsample >= 1:
         raise ValueError(f"field_upsample must be >= 1, got {field_upsample}")
     tmax = float(xp.max(t.real**2 + t.imag**2)) or 1.0
-    field_shape, field_pixel_m = shape, pixel_size_m
+    field_shape = field_grid(shape, field_upsample)
+    # the fine grid holds the coarse one's frequencies and more: its pixel is L / M per axis
+    field_pixel_m = tuple(pixel_size_m * n / m for n, m in zip(shape, field_shape))
     if field_upsample > 1:
-        field_shape = (shape[0] * field_upsample, shape[1] * field_upsample)
-        field_pixel_m = pixel_size_m / field_upsample
         t = interpolate_field(t, field_shape, fft).astype(cdt, copy=False)
         upsample = 1  # |v|^2 is formed on the fine grid already
     k1 = None
@@ -272,6 +283,7 @@ def build_model(
         cdtype=cdt,
         info={"pad": pad, "pixel_integration": pixel_integration, "gamma": gamma},
         field_upsample=field_upsample,
+        field_shape=field_shape,
         reg_terms=_regularizer_terms(reg, reg_phase, _half_weights(shape, xp, rdt), alpha),
     )
 
@@ -390,7 +402,7 @@ def physical_model(psi, model: PWFModel) -> Evaluation:
     """
     fft = model.fft
     if model.field_upsample > 1:
-        fine = (model.shape[0] * model.field_upsample, model.shape[1] * model.field_upsample)
+        fine = model.field_shape
         x = complex_exp(interpolate_field(psi, fine, fft), fft.workers)
         a = x if model.kernel1 is None else _propagate(x, model.kernel1, fft, overwrite=False)
         v = _propagate(model.t * a, model.kernel2, fft, overwrite=True)
@@ -398,7 +410,7 @@ def physical_model(psi, model: PWFModel) -> Evaluation:
         if model.otf is not None:
             spec_i *= model.otf
         f = fft.irfft2(spec_i, s=model.shape, overwrite=True)
-        f *= 1.0 / model.field_upsample**2
+        f *= (model.shape[0] * model.shape[1]) / (fine[0] * fine[1])
         return Evaluation(x=x, v=v, f=f.astype(model.rdtype, copy=False), r=None, loss=math.nan)
     x = complex_exp(psi, fft.workers)
     if model.kernel1 is None:
@@ -438,13 +450,13 @@ def wirtinger_derivative(ev: Evaluation, model: PWFModel):
     g = dJ_data/dRe(psi) + i dJ_data/dIm(psi) for J_data = L / (4 N_t), L of Eq. (lossFunction).
     """
     fft = model.fft
-    s = max(model.upsample, model.field_upsample)
     r = ev.r
-    if s == 1:
+    if model.upsample == 1 and model.field_upsample == 1:
         w = r if model.otf is None else _filter_real(r, model.otf, fft)
         spec = fft.fft2(ev.v * w, overwrite=True)
     else:
-        fine = (model.shape[0] * s, model.shape[1] * s)
+        s = model.upsample
+        fine = model.field_shape if model.field_upsample > 1 else (model.shape[0] * s, model.shape[1] * s)
         rs = fft.rfft2(r)
         if model.otf is not None:
             rs *= model.otf

@@ -25,7 +25,14 @@ from .backend import resolve_device, to_numpy
 from .cluster import Runner, check_scheduler, worker_fft_threads
 from .detector import DEFAULT_OUTLIER_SIGMA, check_threshold, repair_outliers
 from .optics import wavelength_m
-from .retrieval import METHODS, check_diffuser_drift, check_diffuser_upstream, check_solver_options, parse_alpha
+from .retrieval import (
+    METHODS,
+    check_diffuser_drift,
+    check_diffuser_upstream,
+    check_field_upsample,
+    check_solver_options,
+    parse_alpha,
+)
 from .solver import DEFAULT_ALPHA, PAPER_ALPHA, PAPER_TOL
 from .tracking import MIN_POSITIONS
 
@@ -205,8 +212,11 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
         out["preview_residual"][p] = to_numpy(res.residual).astype(np.float32)
     if "diffuser_drift_px" in res.parameters and "diffuser_drift_y_px" in out:
         out["diffuser_drift_y_px"][p, a], out["diffuser_drift_x_px"][p, a] = res.parameters["diffuser_drift_px"]
+    seconds = time.perf_counter() - t0
+    if "retrieval_seconds" in out:  # stores made before timings were kept lack it
+        out["retrieval_seconds"][p, a] = np.float32(seconds)
     out["iterations"][p, a] = np.int32(res.iterations)  # last: marks the projection done
-    return p, a, res.iterations, res.converged, res.residual_rmse, time.perf_counter() - t0, _peak_rss_mb()
+    return p, a, res.iterations, res.converged, res.residual_rmse, seconds, _peak_rss_mb()
 
 
 def _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, coherence, start_from=None):
@@ -365,6 +375,8 @@ def retrieve_scan(
     angle_chain = int(angle_chain) if method == "pwf" and "initial" not in options else 1
     alpha_c = parse_alpha(alpha)
     check_solver_options(max_iter, tol, gamma, step, options.get("phase_scale", 1.0))
+    if "field_upsample" in options:
+        options["field_upsample"] = check_field_upsample(options["field_upsample"])
     ds, info = scan_io.open_scan(scan_path)
     if method == "pwf":
         # the scan's recorded geometry unless the caller gave the distance
@@ -513,9 +525,15 @@ def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, co
     wall = time.perf_counter() - t0
     grp = zarr.open_group(recon_path, mode="r+", use_consolidated=False)
     if results:
-        grp.attrs["retrieval_wall_s"] = wall
-        grp.attrs["retrieval_task_s_mean"] = float(np.mean([r[5] for r in results]))
-        grp.attrs["retrieval_peak_rss_mb"] = float(max(r[6] for r in results))  # of any one worker process
+        a = grp.attrs
+        a["retrieval_wall_s"] = wall
+        a["retrieval_task_s_mean"] = float(np.mean([r[5] for r in results]))
+        # of any one worker process, over every run that filled the store
+        a["retrieval_peak_rss_mb"] = float(max([r[6] for r in results] + [a.get("retrieval_peak_rss_mb", 0.0)]))
+        # a store filled over several (resumed) runs: the totals of all of them
+        a["retrieval_wall_s_total"] = float(a.get("retrieval_wall_s_total", 0.0)) + wall
+        a["retrieval_task_s_total"] = float(a.get("retrieval_task_s_total", 0.0)) + float(sum(r[5] for r in results))
+        a["retrieval_tasks_timed"] = int(a.get("retrieval_tasks_timed", 0)) + len(results)
     scan_io.consolidate(recon_path)
     return {"computed": len(results), "wall_s": wall, "coherence": coherence, "tasks": results}
 

@@ -91,6 +91,13 @@ def test_a_one_angle_scan_retrieves_and_tomography_refuses_in_one_line(tmp_path,
 
 
 @pytest.mark.slow
+def _default_sigint() -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def test_ctrl_c_during_run_says_what_is_saved_and_the_rerun_completes(tmp_path):
     """Issue #28: SIGINT exits 130 within seconds with the resume message; the same command
     then completes the store."""
@@ -106,9 +113,19 @@ def test_ctrl_c_during_run_says_what_is_saved_and_the_rerun_completes(tmp_path):
     from pwf_dask.simulation import simulate_scan
 
     scan, recon = tmp_path / "scan.zarr", tmp_path / "recon.zarr"
-    simulate_scan(scan, preset="demo", shape=(48, 64), angles=12, photons=1e4, progress=False)
+    # enough projections that the run is still going when the first one is saved
+    simulate_scan(scan, preset="demo", shape=(48, 64), angles=40, photons=1e4, progress=False)
     cmd = [sys.executable, "-m", "pwf_dask.cli", "retrieve", str(scan), str(recon), "--max-iter", "100"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ.copy())
+    # as from a shell: Ctrl-C at its default and not blocked, whatever this process's state
+    # after earlier tests (an ignored or blocked SIGINT is inherited by the child)
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=os.environ.copy(),
+        preexec_fn=_default_sigint,
+    )
     deadline = time.monotonic() + 240
     while time.monotonic() < deadline and proc.poll() is None:
         try:

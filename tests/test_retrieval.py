@@ -52,8 +52,8 @@ def test_contract_result(scene):
     assert res.converged and 0 < res.iterations <= 2000
     assert res.parameters["coherence_calibrated"]
     # a thin sample: field_upsample="auto" keeps the paper's detector-grid model
-    # P3000 grains alias on the detector grid: the field goes on the 2x grid (retrieval.diffuser_aliasing)
-    assert res.parameters["diffuser_aliasing"] > 0.06 and res.parameters["field_upsample"] == 2
+    # P3000 grains alias on the detector grid: the field goes on the 1.5x grid (retrieval.diffuser_aliasing)
+    assert res.parameters["diffuser_aliasing"] > 0.06 and res.parameters["field_upsample"] == 1.5
     assert res.parameters["phase_gradient_rad_per_px"] < np.pi / 2
 
 
@@ -89,13 +89,14 @@ def test_zero_phase_diffuser_overshoots_the_bead(scene):
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_papers_diffuser_calibrated_coherence_and_alpha_from_the_data(seed):
     """Issue #27 on the paper's diffuser (four layers of P3000), 256^2, everything from the
-    data: coherence lengths by the template fit, the 2x field grid chosen by the diffuser's
-    aliasing, the default alpha (0.1+0.05j). Measured, seeds 1-3: phase gain 1.006 /
-    1.000 / 0.990, bead phase contrast -2.3 / +0.4 / -0.2 %, attenuation gain 0.996 / 0.990 /
-    0.989 (the paper's alpha: gain 1.02-1.03, bead +34 to +53 %, attenuation 0.86-0.92)."""
+    data: coherence lengths by the template fit, the 1.5x field grid chosen by the diffuser's
+    aliasing, the default alpha (0.1+0.05j). Measured, seeds 1-3: phase gain 1.008 /
+    1.001 / 0.993, bead phase contrast -2.2 / +0.5 / -0.3 %, attenuation gain 0.995 / 0.990 /
+    0.989 (the 2x grid the same to 0.001; the detector grid 0.88-0.91; the paper's alpha:
+    gain 1.02-1.03, bead +34 to +53 %, attenuation 0.86-0.92)."""
     sim = simulate_projection(SpeckleSetup(shape=(256, 256)), seed=seed)
     res = retrieve_projection(sim.sample, sim.reference, **kwargs(sim))
-    assert res.parameters["coherence_method"] == "template" and res.parameters["field_upsample"] == 2
+    assert res.parameters["coherence_method"] == "template" and res.parameters["field_upsample"] == 1.5
     assert 0.95 <= gain(res.phase, sim.phase, sim.phase < -0.5) <= 1.05
     bead = max(sim.phantom.spheres, key=lambda s: s.radius_m)
     assert bead_contrast(res.phase, sim, bead) == pytest.approx(bead_contrast(sim.phase, sim, bead), rel=0.10)
@@ -438,7 +439,9 @@ def test_thick_rod_goes_on_a_finer_grid_and_holds():
     displacements beyond the grain, phase gradients of 4.7 rad/px (99th percentile), above the
     detector grid's pi. The detector-grid model fails (phase error 0.28-0.47, depending on the
     rounding: its fit has no good basin to settle in); the solution's own
-    gradient (> pi/2) makes ``field_upsample="auto"`` go on with a 2x finer grid, which holds."""
+    gradient makes ``field_upsample="auto"`` go on with a finer grid, which holds: P3000 grains
+    put the field on the 1.5x grid first, and a gradient above pi/2 there (where the diffuser's
+    spectrum starts to wrap) moves it to 3x."""
     base = SpeckleSetup(shape=(256, 256))
     phantom = default_phantom(256 * base.pixel_size_m, np.random.default_rng(1), height_m=256 * base.pixel_size_m)
     thin = Scene(base, phantom, 1.0, 1, 0)
@@ -457,9 +460,10 @@ def test_thick_rod_goes_on_a_finer_grid_and_holds():
 
     coarse = retrieve_projection(s[0], r[0], field_upsample=1, **kw)
     auto = retrieve_projection(s[0], r[0], **kw)
-    assert auto.parameters["field_upsample"] == 2 and auto.parameters["phase_gradient_rad_per_px"] > np.pi / 2
+    assert auto.parameters["field_upsample"] == 3 and auto.parameters["phase_gradient_rad_per_px"] > np.pi / 2
     assert error(coarse) > 0.25, error(coarse)  # fails by the stability map's measure
-    assert error(auto) < min(0.25, 0.7 * error(coarse)), (error(coarse), error(auto))  # 0.18 against 0.28
+    # 0.203 against 0.291; fixed grids 1.5x 0.207, 2x 0.204, 3x 0.204: beyond 1.5x the grid changes little
+    assert error(auto) < min(0.25, 0.75 * error(coarse)), (error(coarse), error(auto))
 
 
 def test_auto_field_grid_follows_the_released_codes_working_pixel():

@@ -55,6 +55,8 @@ def data_loss(psi, y, model):
         dict(pixel_integration=True),
         dict(field_upsample=2),
         dict(field_upsample=2, l1=0.0, pad=6),
+        dict(field_upsample=1.5),
+        dict(field_upsample=1.3, l1=0.0, pad=5),
     ],
 )
 def test_wirtinger_derivative_matches_finite_differences(rng, kw):
@@ -214,42 +216,62 @@ def test_unknown_restart_rule_is_refused(rng):
         solver.pwf(y, model, max_iter=2, restart="sometimes")
 
 
-def test_field_on_a_finer_grid_follows_gradients_beyond_pi_per_pixel(rng):
-    """A sample phase sin wave with a 3.5 rad/px peak gradient: on the detector grid exp(psi)
-    aliases (the wave tilts the wrong way where |grad| > pi), on a 2x grid it does not. The
-    truth is the same chain computed on a 4x grid, band-limited to the detector."""
-    n, p, l2 = 48, 0.65e-6, 0.02
+TILT_P, TILT_L2 = 0.65e-6, 0.02
+
+
+def _tilted_scene(rng, shape, gradient_rad_per_px):
+    """A diffuser band-limited to 0.1 cycle/px, a sample phase sin wave along x with the given
+    peak gradient, a coherent model of the chain on a field grid of factor s, and the truth:
+    the same chain on a 4x grid, band-limited to the detector."""
     wl = optics.wavelength_m(10_000)
-    v_, u_ = optics.frequency_grid((n, n), 1.0, half=False)
-    spec = (rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n))) * (np.hypot(u_, v_) < 0.1)
-    t = 1.0 + 0.3 * np.fft.ifft2(spec) / np.abs(np.fft.ifft2(spec)).max()  # band-limited diffuser
-    amplitude = 3.5 * n / (2 * np.pi)
-    psi = np.broadcast_to(1j * amplitude * np.sin(2 * np.pi * np.arange(n) / n)[None, :], (n, n))
+    v_, u_ = optics.frequency_grid(shape, 1.0, half=False)
+    spec = (rng.normal(size=shape) + 1j * rng.normal(size=shape)) * (np.hypot(u_, v_) < 0.1)
+    t = 1.0 + 0.3 * np.fft.ifft2(spec) / np.abs(np.fft.ifft2(spec)).max()
+    amplitude = gradient_rad_per_px * shape[1] / (2 * np.pi)
+    psi = np.broadcast_to(1j * amplitude * np.sin(2 * np.pi * np.arange(shape[1]) / shape[1])[None, :], shape)
 
     def model(s):
         return solver.build_model(
             t,
-            frame_shape=(n, n),
-            pixel_size_m=p,
+            frame_shape=shape,
+            pixel_size_m=TILT_P,
             wavelength=wl,
             sample_diffuser_distance_m=0.0,
-            diffuser_detector_distance_m=l2,
+            diffuser_detector_distance_m=TILT_L2,
             coherence_length_x_m=0.0,
             coherence_length_y_m=0.0,
             precision="double",
             field_upsample=s,
         )
 
-    fft = model(1).fft
-    fine = (4 * n, 4 * n)
-    x4 = np.arange(4 * n) / 4
-    field4 = solver.interpolate_field(t, fine, fft) * np.exp(1j * amplitude * np.sin(2 * np.pi * x4 / n))[None, :]
-    i4 = np.abs(optics.angular_spectrum_propagate(field4, p / 4, wl, l2)) ** 2
-    truth = np.fft.irfft2(solver._crop_spectrum(np.fft.rfft2(i4), (n, n), half=True), s=(n, n)) / 16
-    f1 = solver.physical_model(psi, model(1)).f
-    f2 = solver.physical_model(psi, model(2)).f
-    assert np.abs(f2 - truth).max() < 1e-6
-    assert np.abs(f1 - truth).max() > 0.1
+    big = (4 * shape[0], 4 * shape[1])
+    x4 = np.arange(big[1]) / 4
+    tilt = np.exp(1j * amplitude * np.sin(2 * np.pi * x4 / shape[1]))[None, :]
+    field4 = solver.interpolate_field(t, big, model(1).fft) * tilt
+    i4 = np.abs(optics.angular_spectrum_propagate(field4, TILT_P / 4, wl, TILT_L2)) ** 2
+    truth = np.fft.irfft2(solver._crop_spectrum(np.fft.rfft2(i4), shape, half=True), s=shape) / 16
+    return psi, model, truth
+
+
+def test_field_on_a_finer_grid_follows_gradients_beyond_pi_per_pixel(rng):
+    """A sample phase sin wave with a 3.5 rad/px peak gradient: on the detector grid exp(psi)
+    aliases (the wave tilts the wrong way where |grad| > pi), on a 2x grid it does not."""
+    psi, model, truth = _tilted_scene(rng, (48, 48), 3.5)
+    assert np.abs(solver.physical_model(psi, model(2)).f - truth).max() < 1e-6
+    assert np.abs(solver.physical_model(psi, model(1)).f - truth).max() > 0.1
+
+
+def test_a_fractional_field_grid_is_exact_within_its_band(rng):
+    """A 1.45x field grid on a 48 x 40 frame: 70 x 60 (fast lengths, so the fine pixel differs
+    between the axes). A tilt of 2 rad/px along x on a diffuser band-limited to 0.1 cycle/px
+    keeps the field within 0.42 cycle/px, whose |v|^2 the grid holds without wrapping into the
+    detector band: the intensity is the 4x grid's (to 1e-6: the Bessel tails of the tilt), the
+    detector grid's not."""
+    psi, model, truth = _tilted_scene(rng, (48, 40), 2.0)
+    fine = model(1.45)
+    assert fine.field_shape == (70, 60) and solver.field_grid((48, 40), 2) == (96, 80)
+    assert np.abs(solver.physical_model(psi, fine).f - truth).max() < 1e-6
+    assert np.abs(solver.physical_model(psi, model(1)).f - truth).max() > 1e-3  # 1.8e-3: |v|^2 wraps
 
 
 def test_stop_statistic_is_accurate_on_full_detector_frames():

@@ -115,6 +115,18 @@ def test_resume_computes_only_missing(tiny_scan, tmp_path, monkeypatch):
     res = workflow.retrieve_scan(tiny_scan, part, **FAST)
     assert res["computed"] == (done < 0).sum()
     stores_equal(full, part)
+    # timings add up over the runs that filled a store (the killed run recorded none)
+    a = dict(zarr.open_group(str(part), mode="r", use_consolidated=False).attrs)
+    assert a["retrieval_tasks_timed"] == res["computed"] and a["retrieval_task_s_total"] > 0
+    before = dict(zarr.open_group(str(full), mode="r", use_consolidated=False).attrs)
+    assert before["retrieval_tasks_timed"] == done.size
+    assert workflow.retrieve_scan(tiny_scan, full, **FAST)["computed"] == 0
+    after = dict(zarr.open_group(str(full), mode="r", use_consolidated=False).attrs)
+    assert after["retrieval_tasks_timed"] == done.size
+    assert after["retrieval_wall_s_total"] == before["retrieval_wall_s_total"]
+    # and each projection keeps its own task's time, whichever run made it
+    seconds = zarr.open_group(str(part), mode="r", use_consolidated=False)["retrieval_seconds"][...]
+    assert np.all(seconds > 0)
 
 
 def test_the_diffuser_is_fitted_once_per_position_and_kept(tiny_scan, tmp_path, monkeypatch):
