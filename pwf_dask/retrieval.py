@@ -175,10 +175,11 @@ DIFFUSER_ALIASING_FRACTION = 0.06
 DIFFUSER_ALIASING_FREQUENCY = 0.35
 #: The field grid ``"auto"`` takes for an aliasing diffuser. Its Nyquist frequency, 0.75
 #: cycles per detector pixel, holds t's spectrum (to 0.5) tilted by sample gradients up to
-#: pi/2 rad/px. Measured (P3000, calibrated lengths, 1e4 ph/px; phase gain / largest bead's
-#: contrast at 1, 1.25, 1.5, 2x): 256^2 seeds 1-3 0.907-0.882-0.889 / 1.002-0.998-0.986 /
-#: 1.008-1.001-0.993 / 1.008-1.000-0.992; 512^2 0.896 / 0.991 / 0.994 / 0.994, bead +4.2 %
-#: at 1.5x and 2x; 1.5x costs 2.25x the detector grid's pixels against 2x's 4x (workflows/results/field_grid.md).
+#: pi/2 rad/px. Measured (P3000, calibrated lengths, 1e4 ph/px; phase gain at 1 / 1.25 / 1.5 /
+#: 2x): 256^2 seeds 1-3 0.907-0.882-0.889 / 1.002-0.998-0.986 / 1.008-1.001-0.993 /
+#: 1.008-1.000-0.992; 512^2 0.896 / 0.991 / 0.994 / 0.994, the largest bead's contrast +4.2 %
+#: at 1.5x and 2x. 1.5x costs 2.25x the detector grid's pixels against 2x's 4x: 38.7 against
+#: 62.0 FFT-times per iteration at 1024^2 (workflows/results/field_grid.md).
 DIFFUSER_FIELD_UPSAMPLE: float = 1.5
 
 
