@@ -72,7 +72,7 @@ def make_cluster(args: argparse.Namespace):
 def main(argv: list[str] | None = None) -> int:
     from distributed import Client
 
-    from pwf_dask.workflow import run_scan
+    from pwf_dask.pipeline.workflow import run_scan
 
     args = parser().parse_args(argv)
     kwargs = retrieval_kwargs(args)

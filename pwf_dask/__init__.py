@@ -2,7 +2,7 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
-from .retrieval import RetrievalResult, retrieve_projection
+from pwf_dask.retrieval import RetrievalResult, retrieve_projection
 
 try:
     __version__ = version("pwf-dask")

@@ -16,10 +16,10 @@ from pathlib import Path
 
 
 def _scan_demo(args) -> int:
-    from . import scan_io
-    from .plots import preview
-    from .simulation import simulate_scan
-    from .workflow import run_scan
+    from pwf_dask.pipeline.workflow import run_scan
+    from pwf_dask.plots import preview
+    from pwf_dask.simulation import simulate_scan
+    from pwf_dask.stores import scan_io
 
     out = Path(args.dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -54,7 +54,7 @@ def _scan_demo(args) -> int:
 
 
 def _simulate(args) -> int:
-    from .simulation import simulate_scan
+    from pwf_dask.simulation import simulate_scan
 
     shape = tuple(args.shape) if args.shape else None
     path = simulate_scan(
@@ -81,7 +81,7 @@ def _simulate(args) -> int:
 
 
 def _ingest(args) -> int:
-    from .ingest import dxchange_specs, ingest_scan
+    from pwf_dask.stores.ingest import dxchange_specs, ingest_scan
 
     specs = dxchange_specs(args.dxchange) if args.dxchange else {}
     projections = args.projections or ([specs["projections"]] if "projections" in specs else None)
@@ -113,7 +113,7 @@ def _ingest(args) -> int:
 
 def retrieval_kwargs(args) -> dict:
     """The retrieval options shared by ``retrieve``, ``run`` and deploy/jobqueue.py, as keyword
-    arguments of :func:`pwf_dask.workflow.run_scan`."""
+    arguments of :func:`pwf_dask.pipeline.workflow.run_scan`."""
     return dict(
         method=args.method,
         max_iter=args.max_iter,
@@ -136,7 +136,7 @@ def retrieval_kwargs(args) -> dict:
 
 
 def _retrieve(args) -> int:
-    from .workflow import retrieve_scan
+    from pwf_dask.pipeline.workflow import retrieve_scan
 
     with _runner(args) as runner:
         r = retrieve_scan(
@@ -147,7 +147,7 @@ def _retrieve(args) -> int:
 
 
 def _tomo(args) -> int:
-    from .workflow import tomo_scan
+    from pwf_dask.pipeline.workflow import tomo_scan
 
     center = None if args.center_um is None else args.center_um * 1e-6
     with _runner(args) as runner:
@@ -159,7 +159,7 @@ def _tomo(args) -> int:
 
 
 def _fsc(args) -> int:
-    from .workflow import fsc_scan
+    from pwf_dask.pipeline.workflow import fsc_scan
 
     r = fsc_scan(args.recon, split=args.split, criterion=args.criterion)
     print(f"FSC ({r['split']}, {args.criterion}): delta {r['delta'] * 1e6:.2f} µm, beta {r['beta'] * 1e6:.2f} µm")
@@ -170,8 +170,8 @@ def _fsc(args) -> int:
 
 
 def _run(args) -> int:
-    from .plots import preview
-    from .workflow import run_scan
+    from pwf_dask.pipeline.workflow import run_scan
+    from pwf_dask.plots import preview
 
     center = None if args.center_um is None else args.center_um * 1e-6
     with _runner(args) as runner:
@@ -202,7 +202,7 @@ def _run(args) -> int:
 
 
 def _estimate(args) -> int:
-    from .estimate import estimate_for_scan, format_estimate, machine_memory_mb
+    from pwf_dask.pipeline.estimate import estimate_for_scan, format_estimate, machine_memory_mb
 
     if args.workers < 1 or args.iterations < 1:
         raise ValueError("--workers and --iterations are whole numbers >= 1")
@@ -216,7 +216,7 @@ def _estimate(args) -> int:
 
 
 def _verify(args) -> int:
-    from .integrity import verify_store
+    from pwf_dask.stores.integrity import verify_store
 
     report = verify_store(args.store, repair=args.repair)
     print("\n".join(report.lines()))
@@ -226,7 +226,7 @@ def _verify(args) -> int:
 
 
 def _preview(args) -> int:
-    from .plots import preview
+    from pwf_dask.plots import preview
 
     figures = preview(args.recon, args.dir)
     print("figures: " + ", ".join(str(p) for p in figures))
@@ -234,19 +234,31 @@ def _preview(args) -> int:
 
 
 def _export(args) -> int:
-    from .export import export_tiff
+    from pwf_dask.stores.export import export_tiff
 
     files = export_tiff(args.recon, args.dir, layout=args.layout)
     print(f"wrote {len(files)} TIFF file{'s' * (len(files) != 1)} to {args.dir}")
     return 0
 
 
+def _benchmarks_checkout() -> Path:
+    """The repository root whose ``benchmarks/`` the bench verb runs (benchmarks are not installed)."""
+    root = Path(__file__).resolve().parents[1]
+    if not (root / "benchmarks" / "__init__.py").exists():
+        raise ValueError("pwf-dask bench needs a source checkout: no benchmarks/ folder beside the pwf_dask package")
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    return root
+
+
 def _bench(args) -> int:
-    from . import bench, stability
+    _benchmarks_checkout()
+    from benchmarks import speed as bench
+    from benchmarks import speed_accuracy, stability
 
     runs = {
         "iteration": lambda: bench.run_iteration_benchmark(args.out, device=args.device, quick=args.quick),
-        "accuracy": lambda: bench.run_accuracy_benchmark(args.out, preset=args.preset),
+        "accuracy": lambda: speed_accuracy.run_accuracy_benchmark(args.out, preset=args.preset),
         "scan": lambda: bench.run_scan_benchmark(args.out),
         "fbp": lambda: bench.run_fbp_benchmark(args.out, quick=args.quick),
         "perscan": lambda: bench.run_per_scan_benchmark(args.out, quick=args.quick),
@@ -261,7 +273,7 @@ def _bench(args) -> int:
 
 
 def _compute_options(p: argparse.ArgumentParser) -> None:
-    from .cluster import DEFAULT_DASHBOARD_ADDRESS
+    from pwf_dask.pipeline.cluster import DEFAULT_DASHBOARD_ADDRESS
 
     p.add_argument(
         "--scheduler",
@@ -285,7 +297,7 @@ def _compute_options(p: argparse.ArgumentParser) -> None:
 
 def _runner(args):
     """The scheduler connection of a computing command (validated before anything is written)."""
-    from .cluster import Runner
+    from pwf_dask.pipeline.cluster import Runner
 
     return Runner(args.scheduler, dashboard_address=args.dashboard_address, security=args.security)
 
@@ -305,7 +317,7 @@ def add_tomo_options(p) -> None:
 
 
 def _field_upsample(text: str):
-    from .retrieval import check_field_upsample
+    from pwf_dask.retrieval import check_field_upsample
 
     try:
         return check_field_upsample(text)
@@ -315,9 +327,9 @@ def _field_upsample(text: str):
 
 def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     """Every retrieval option of ``retrieve`` and ``run`` (read back by :func:`retrieval_kwargs`)."""
-    from .detector import DEFAULT_OUTLIER_SIGMA
-    from .solver import DEFAULT_ALPHA, PAPER_TOL
-    from .workflow import DEFAULT_ANGLE_CHAIN
+    from pwf_dask.physics.detector import DEFAULT_OUTLIER_SIGMA
+    from pwf_dask.pipeline.workflow import DEFAULT_ANGLE_CHAIN
+    from pwf_dask.pwf.solver import DEFAULT_ALPHA, PAPER_TOL
 
     p.add_argument(
         "--method",
@@ -426,9 +438,9 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
-    from .diffusers import DEFAULT_GRIT, FEPA_P_GRIT_DIAMETER_M, GRAIN_SHAPES
-    from .simulation import DEFAULT_PRESET, PRESETS
+    from pwf_dask import __version__
+    from pwf_dask.physics.diffusers import DEFAULT_GRIT, FEPA_P_GRIT_DIAMETER_M, GRAIN_SHAPES
+    from pwf_dask.simulation import DEFAULT_PRESET, PRESETS
 
     p = argparse.ArgumentParser(
         prog="pwf-dask",
@@ -610,7 +622,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0, help="random seed of the simulated scan")
     _compute_options(d)
     d.set_defaults(func=_scan_demo)
-    b = command("bench", "benchmarks; results to workflows/results/")
+    b = command("bench", "benchmarks (from a source checkout); results to benchmarks/results/")
     b.add_argument(
         "what",
         choices=["iteration", "scan", "fbp", "perscan", "fullwidth", "accuracy", "stability"],
@@ -621,7 +633,7 @@ def build_parser() -> argparse.ArgumentParser:
         "stability: where each method fails",
     )
     b.add_argument("--device", default="cpu", choices=["cpu", "gpu", "auto"], help="NumPy or CuPy numerics")
-    b.add_argument("--out", default="workflows/results", help="folder of the result files")
+    b.add_argument("--out", default="benchmarks/results", help="folder of the result files")
     b.add_argument("--quick", action="store_true", help="one small size or scene (smoke test)")
     b.add_argument(
         "--work-dir",
@@ -665,7 +677,7 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .log import configure
+    from pwf_dask.log import configure
 
     args = build_parser().parse_args(argv)
     configure(1 if args.verbose else -1 if args.quiet else 0)

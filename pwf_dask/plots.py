@@ -33,7 +33,7 @@ def projection_panels(
     """PNG of the speckle images, retrieved phase and attenuation, residual (and the truth).
     ``sample``/``reference`` or ``result.residual`` None leave their panels out."""
     plt = pyplot()
-    from .backend import to_numpy
+    from pwf_dask.backend import to_numpy
 
     method = str(getattr(result, "parameters", {}).get("method", "PWF")).upper()
     panels = [
@@ -175,8 +175,9 @@ def _preview_projection(ds, out: Path) -> Path | None:
     the scan is simulated."""
     from types import SimpleNamespace
 
-    from . import optics, scan_io
-    from .simulation import phantom_from_json
+    from pwf_dask.physics import optics
+    from pwf_dask.simulation import phantom_from_json
+    from pwf_dask.stores import scan_io
 
     done = np.argwhere(ds["iterations"].values >= 0)
     if not len(done):
@@ -227,7 +228,7 @@ def preview(recon_path: str | Path, out_dir: str | Path | None = None) -> list[P
     panels, delta/beta slices (with the truth's for a simulated scan) and FSC curves."""
     import xarray as xr
 
-    from .simulation import phantom_from_json, refractive_index_volume
+    from pwf_dask.simulation import phantom_from_json, refractive_index_volume
 
     ds = xr.open_zarr(str(recon_path))
     out = Path(out_dir) if out_dir is not None else default_figure_dir(recon_path)

@@ -43,7 +43,7 @@ class Progress:
         interval_s: float = 1.0,
         quiet_step_percent: float = 10.0,
     ):
-        from .log import progress_enabled
+        from pwf_dask.log import progress_enabled
 
         self.label, self.total, self.count, self.unit = label, int(total), count, unit
         self.enabled = stream is not None or progress_enabled()

@@ -12,11 +12,14 @@ from typing import Any
 
 import numpy as np
 
-from . import background as bg
-from . import calibration, optics, solver
-from .backend import FFT, get_array_module, to_numpy
-from .detector import DEFAULT_OUTLIER_SIGMA, repair_outliers
-from .materials import delta_beta
+from pwf_dask import calibration
+from pwf_dask.backend import FFT, get_array_module, to_numpy
+from pwf_dask.physics import background as bg
+from pwf_dask.physics import optics
+from pwf_dask.physics.detector import DEFAULT_OUTLIER_SIGMA, repair_outliers
+from pwf_dask.physics.materials import delta_beta
+from pwf_dask.physics.optics import check_diffuser_upstream
+from pwf_dask.pwf import solver
 
 METHODS = ("pwf", "umpa", "lcs", "gf", "mist")
 
@@ -42,7 +45,7 @@ AUTHORS_RELEASE: dict[str, Any] = dict(
 
 
 #: ``alpha`` spelled by name: "discrepancy" chooses Im(alpha) from the data
-#: (:func:`pwf_dask.solver.discrepancy_alpha`), "paper" is the paper's 0.1 + 0.01i.
+#: (:func:`pwf_dask.pwf.solver.discrepancy_alpha`), "paper" is the paper's 0.1 + 0.01i.
 ALPHA_RULES = ("discrepancy", "paper")
 
 
@@ -179,7 +182,7 @@ DIFFUSER_ALIASING_FREQUENCY = 0.35
 #: 2x): 256^2 seeds 1-3 0.907-0.882-0.889 / 1.002-0.998-0.986 / 1.008-1.001-0.993 /
 #: 1.008-1.000-0.992; 512^2 0.896 / 0.991 / 0.994 / 0.994, the largest bead's contrast +4.2 %
 #: at 1.5x and 2x. 1.5x costs 2.25x the detector grid's pixels against 2x's 4x: 38.7 against
-#: 62.0 FFT-times per iteration at 1024^2 (workflows/results/field_grid.md).
+#: 62.0 FFT-times per iteration at 1024^2 (benchmarks/results/field_grid.md).
 DIFFUSER_FIELD_UPSAMPLE: float = 1.5
 
 
@@ -356,19 +359,6 @@ def check_solver_options(max_iter, tol, gamma, step, phase_scale=1.0) -> None:
         raise ValueError(f"phase_scale must be 'auto' or a number > 0, got {phase_scale!r}")
 
 
-def check_diffuser_upstream(diffuser_upstream_m: float, sample_diffuser_distance_m: float) -> float:
-    """A diffuser upstream of the sample: >= 0 m, and only where the scan records L1 = 0."""
-    d = float(diffuser_upstream_m)
-    if not (math.isfinite(d) and d >= 0):
-        raise ValueError(f"diffuser_upstream_m must be >= 0, got {diffuser_upstream_m}")
-    if d > 0 and sample_diffuser_distance_m != 0:
-        raise ValueError(
-            "diffuser_upstream_m > 0 puts the diffuser before the sample, which needs "
-            f"sample_diffuser_distance_m = 0 (L1 = 0), got {sample_diffuser_distance_m}"
-        )
-    return d
-
-
 def drift_threshold_px(frame_shape: tuple[int, int]) -> float:
     """The drift ``diffuser_drift="auto"`` corrects from: :data:`DRIFT_MIN_PX`, or twice the
     estimate's scatter on a frame of this many pixels where that is larger."""
@@ -491,7 +481,7 @@ def retrieve_projection(
     (:func:`pwf_dask.calibration.diffuser_transmission`).
 
     ``field_upsample`` evaluates exp(psi), t and both propagations on a finer grid (psi stays
-    on the detector grid; :func:`pwf_dask.solver.build_model`): ``"auto"`` starts on the grid
+    on the detector grid; :func:`pwf_dask.pwf.solver.build_model`): ``"auto"`` starts on the grid
     of :func:`auto_field_upsample` (the detector grid unless the pixel is coarser than the
     authors' working pixel), on a :data:`DIFFUSER_FIELD_UPSAMPLE` (1.5x) grid at least when the
     diffuser estimate aliases there
@@ -501,7 +491,7 @@ def retrieve_projection(
     a number >= 1 (fractional too) fixes the grid.
     ``initial`` starts Algorithm S1 from zero (the paper), from UMPA's one-image estimate
     (``"umpa"``), or from a given complex psi of the image's shape. ``restart`` is the
-    momentum rule of :func:`pwf_dask.solver.pwf` (``"none"``: Algorithm S1 as printed);
+    momentum rule of :func:`pwf_dask.pwf.solver.pwf` (``"none"``: Algorithm S1 as printed);
     :data:`AUTHORS_RELEASE` holds the choices of the authors' released code.
 
     ``diffuser_drift`` (not in the paper) moves t_r to where the diffuser was when the
@@ -808,7 +798,7 @@ def retrieve_tracking(
     ``sample`` and ``reference`` are (y, x) or (K, y, x) stacks of K diffuser positions (LCS
     needs K >= 3, MIST K >= 4); the results are (y, x). ``options`` go to the method (e.g.
     ``window``, ``max_shift`` for UMPA, ``delta_over_beta`` for MIST). Spikes beyond
-    ``outlier_sigma`` (:mod:`pwf_dask.detector`) are replaced by their neighbours' median in
+    ``outlier_sigma`` (:mod:`pwf_dask.physics.detector`) are replaced by their neighbours' median in
     every frame first: the trackers need every pixel.
 
     ``diffuser_drift`` (not in the papers; as for PWF, :func:`measured_drift`): measured on the
@@ -820,7 +810,7 @@ def retrieve_tracking(
     limit or at the sub-pixel fit's half-pixel worst case, and the unmatched strips feed
     wrong displacements into the Fourier integration (docs/validation.md, "Diffuser drift").
     """
-    from . import tracking
+    from pwf_dask.baselines import tracking
 
     xp = get_array_module(sample, reference)
     s = xp.asarray(sample, dtype=xp.float64)

@@ -31,7 +31,7 @@ def cupy(request):
         return
     from emulated_cupy import installed
 
-    from pwf_dask import workflow
+    from pwf_dask.pipeline import workflow
 
     with installed() as cp:
         yield cp

@@ -45,9 +45,9 @@ def test_bench_iteration_on_cupy_names_the_device(cupy, tmp_path):
 def test_bench_accuracy_writes_one_row_per_run_with_errors_against_the_truth(tmp_path, capsys):
     """One cheap run (GF on the demo scene) through the whole accuracy bench; a preset without
     a scene exits with one line and writes nothing."""
-    from pwf_dask import bench
+    from benchmarks import speed_accuracy
 
-    rows = bench.run_accuracy_benchmark(tmp_path / "out", tmp_path / "work", runs=[("GF K=1", "gf", 1, {})])
+    rows = speed_accuracy.run_accuracy_benchmark(tmp_path / "out", tmp_path / "work", runs=[("GF K=1", "gf", 1, {})])
     assert [r["label"] for r in rows] == ["GF K=1"]
     # GF has no attenuation (its beta is zero): the bead's beta error is -1 exactly
     assert rows[0]["bead_beta_err"] == pytest.approx(-1.0)

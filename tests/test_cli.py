@@ -55,8 +55,8 @@ def test_a_one_angle_scan_retrieves_and_tomography_refuses_in_one_line(tmp_path,
     import numpy as np
     import xarray as xr
 
-    from pwf_dask import scan_io
     from pwf_dask.simulation import simulate_scan
+    from pwf_dask.stores import scan_io
 
     two = tmp_path / "two.zarr"
     simulate_scan(two, preset="demo", shape=(48, 64), angles=2, photons=1e4, progress=False)
@@ -247,7 +247,7 @@ def test_export_tiff_values_and_voxel_size_match_the_store(small_recon, tmp_path
 def test_a_run_failing_before_its_first_projection_leaves_no_store(tmp_path, capsys, monkeypatch):
     """Issue #28: a store with nothing in it would refuse the corrected re-run; a store with
     saved projections is kept for the resume."""
-    from pwf_dask import workflow
+    from pwf_dask.pipeline import workflow
 
     scan, recon = tmp_path / "scan.zarr", tmp_path / "recon.zarr"
     assert cli.main(["simulate", str(scan), "--preset", "demo", "--shape", "32", "32", "--angles", "2"]) == 0

@@ -5,7 +5,7 @@ import pytest
 from scipy import ndimage
 
 from pwf_dask import retrieve_projection
-from pwf_dask.detector import _neighbours, find_outliers, noise_sigma, repair_outliers
+from pwf_dask.physics.detector import _neighbours, find_outliers, noise_sigma, repair_outliers
 from pwf_dask.simulation import SpeckleSetup, simulate_projection
 
 

@@ -3,7 +3,9 @@
 import numpy as np
 import pytest
 
-from pwf_dask import cli, estimate, scan_io
+from pwf_dask import cli
+from pwf_dask.pipeline import estimate
+from pwf_dask.stores import scan_io
 
 SPEEDS = estimate.Speeds(fft_s=0.01, fbp_row_s=0.05, fbp_row_s_per_angle=1e-3)
 

@@ -6,7 +6,7 @@ from scipy.ndimage import gaussian_filter
 from skimage.data import shepp_logan_phantom
 from skimage.transform import iradon, radon, resize
 
-from pwf_dask import gridrec, tomography
+from pwf_dask.tomo import gridrec, tomography
 
 pytestmark = pytest.mark.skipif(not gridrec.available(), reason="finufft is not installed")
 
@@ -95,7 +95,7 @@ def test_a_bad_fbp_is_refused_before_anything_is_written(tmp_path, capsys):
 
     scan = tmp_path / "s.zarr"
     assert cli.main(["simulate", str(scan), "--preset", "demo", "--shape", "32", "32", "--angles", "2"]) == 0
-    from pwf_dask.workflow import run_scan
+    from pwf_dask.pipeline.workflow import run_scan
 
     with pytest.raises(ValueError, match="fbp must be one of"):
         run_scan(scan, tmp_path / "r.zarr", fbp="fourier")

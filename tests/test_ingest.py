@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 import tifffile
 
-from pwf_dask import cli, scan_io
-from pwf_dask.ingest import ingest_scan, read_angles_deg
+from pwf_dask import cli
 from pwf_dask.simulation import simulate_scan
+from pwf_dask.stores import scan_io
+from pwf_dask.stores.ingest import ingest_scan, read_angles_deg
 
 GEOMETRY = dict(
     energy_eV=10_000.0, pixel_size_m=0.65e-6, sample_diffuser_distance_m=3e-3, diffuser_detector_distance_m=0.02

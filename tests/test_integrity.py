@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 import zarr
 
-from pwf_dask import cli, integrity, scan_io
+from pwf_dask import cli
 from pwf_dask.simulation import simulate_scan
+from pwf_dask.stores import integrity, scan_io
 
 RUN = ["--max-iter", "15"]
 COMPARED = ("phase", "attenuation", "iterations", "delta", "beta", "fsc_delta")
@@ -147,7 +148,7 @@ def test_a_kill_during_creation_leaves_no_store_and_the_rerun_is_whole(
 ):
     """Issue #29: a creation killed before its attributes left a store that accepted any
     parameters. The store is built under a hidden name and renamed when whole."""
-    from pwf_dask import workflow
+    from pwf_dask.pipeline import workflow
 
     scan, _ = finished
     recon = tmp_path / "recon.zarr"
@@ -289,7 +290,7 @@ def test_bad_run_options_are_refused_before_anything_is_written(finished, tmp_pa
 
 def test_local_dashboard_listens_on_this_host_only():
     """Issue #29: ``dashboard_address=":0"`` answered from other addresses."""
-    from pwf_dask.cluster import Runner
+    from pwf_dask.pipeline.cluster import Runner
 
     with Runner("local", workers=1) as runner:
         link = runner.client.dashboard_link
@@ -315,7 +316,7 @@ def _die_once(marker):
 def test_processes_scheduler_survives_a_lost_worker(tmp_path):
     """Issue #29: `processes` aborted the run when one worker died; it is now a LocalCluster
     under nannies, as `local`: the worker is restarted and its task retried."""
-    from pwf_dask.cluster import Runner
+    from pwf_dask.pipeline.cluster import Runner
 
     with Runner("processes", workers=1) as runner:
         assert runner.client is not None
@@ -325,7 +326,7 @@ def test_processes_scheduler_survives_a_lost_worker(tmp_path):
 
 def test_store_paths_are_absolute_before_tasks_are_sent(finished, tmp_path, monkeypatch):
     """Issue #29: relative paths were opened in the workers' working directory."""
-    from pwf_dask import workflow
+    from pwf_dask.pipeline import workflow
 
     scan, recon = _copy(finished, tmp_path)
     monkeypatch.chdir(tmp_path)

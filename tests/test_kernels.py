@@ -1,11 +1,12 @@
-"""The fused passes of the iteration (pwf_dask.kernels): the compiled loops give the NumPy
+"""The fused passes of the iteration (pwf_dask.pwf.kernels): the compiled loops give the NumPy
 expressions they replace, to float32 rounding, and the solver's direction is today's."""
 
 import numpy as np
 import pytest
 
-from pwf_dask import kernels, optics, solver
 from pwf_dask.backend import FFT
+from pwf_dask.physics import optics
+from pwf_dask.pwf import kernels, solver
 
 pytest.importorskip("numba")
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pwf_dask import optics
+from pwf_dask.physics import optics
 
 
 def gaussian_beam(x, y, w0):

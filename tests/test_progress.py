@@ -3,7 +3,7 @@
 import io
 import threading
 
-from pwf_dask.cluster import Runner
+from pwf_dask.pipeline.cluster import Runner
 from pwf_dask.progress import Progress, format_seconds
 
 

@@ -3,7 +3,10 @@
 import numpy as np
 import pytest
 
-from pwf_dask import optics, retrieve_projection, solver
+from benchmarks.stability import Scene, errors
+from pwf_dask import retrieve_projection
+from pwf_dask.physics import optics
+from pwf_dask.pwf import solver
 from pwf_dask.retrieval import estimate_diffuser
 from pwf_dask.simulation import (
     FINE_DIFFUSER,
@@ -13,7 +16,6 @@ from pwf_dask.simulation import (
     default_phantom,
     simulate_projection,
 )
-from pwf_dask.stability import Scene, errors
 
 
 def kwargs(sim, **extra):
@@ -378,7 +380,7 @@ def test_small_strong_bead_overshoots_with_the_papers_alpha():
     contrast overshoots; the default alpha (Im 0.05) holds it."""
     from dataclasses import replace
 
-    from pwf_dask import stability
+    from benchmarks import stability
 
     setup = SpeckleSetup(shape=(128, 128), photons=1e4)
     p = setup.pixel_size_m

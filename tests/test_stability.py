@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from pwf_dask import optics, stability
+from benchmarks import stability
+from pwf_dask.physics import optics
 from pwf_dask.simulation import FINE_DIFFUSER, Phantom, SpeckleSetup, Sphere, dark_field_blur
 
 
@@ -71,7 +72,7 @@ def test_a_written_map_reads_back_as_it_was_written(tmp_path):
     they write the same table (numbers, labels, booleans, NaN)."""
     from pathlib import Path
 
-    committed = Path(__file__).parents[1] / "workflows" / "results"
+    committed = Path(__file__).parents[1] / "benchmarks" / "results"
     rows = stability.read_stability_rows(committed / "stability_map.csv")
     assert {"dose", "geometry", "ablation", "pixel_um"} <= {r["axis"] for r in rows}
     assert any(isinstance(r["value"], str) for r in rows) and all(isinstance(r["holds"], bool) for r in rows)

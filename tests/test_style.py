@@ -13,6 +13,9 @@ def test_ruff_clean():
         pytest.skip("ruff not installed")
     root = Path(__file__).parents[1]
     out = subprocess.run(
-        [ruff, "check", "pwf_dask", "tests", "workflows", "deploy"], cwd=root, capture_output=True, text=True
+        [ruff, "check", "pwf_dask", "benchmarks", "tests", "workflows", "deploy"],
+        cwd=root,
+        capture_output=True,
+        text=True,
     )
     assert out.returncode == 0, out.stdout

@@ -6,7 +6,7 @@ from scipy.ndimage import gaussian_filter, shift
 from skimage.data import shepp_logan_phantom
 from skimage.transform import iradon, radon, resize
 
-from pwf_dask import fsc, tomography
+from pwf_dask.tomo import fsc, tomography
 
 
 @pytest.fixture(scope="module")

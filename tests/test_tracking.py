@@ -3,8 +3,10 @@
 import numpy as np
 import pytest
 
-from pwf_dask import background, optics, retrieve_projection, tracking
-from pwf_dask.materials import delta_beta
+from pwf_dask import retrieve_projection
+from pwf_dask.baselines import tracking
+from pwf_dask.physics import background, optics
+from pwf_dask.physics.materials import delta_beta
 from pwf_dask.simulation import Phantom, SpeckleSetup, SpeckleSimulator, Sphere
 
 FRESNEL = optics.wavelength_m(1e4) * 0.02 / (0.65e-6) ** 2
@@ -123,7 +125,7 @@ def test_retrieve_projection_dispatches_baselines(scenes):
 
 
 def test_pareto_front_of_time_and_error():
-    from pwf_dask.bench import _pareto
+    from benchmarks.speed_accuracy import _pareto
 
     pts = [(1.0, 0.5), (2.0, 0.2), (3.0, 0.3), (0.5, 0.9), (2.0, 0.2)]
     assert _pareto(pts) == {0, 1, 3, 4}

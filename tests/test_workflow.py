@@ -10,8 +10,10 @@ import pytest
 import xarray as xr
 import zarr
 
-from pwf_dask import cli, scan_io, solver, workflow
-from pwf_dask.materials import delta_beta
+from pwf_dask import cli
+from pwf_dask.physics.materials import delta_beta
+from pwf_dask.pipeline import workflow
+from pwf_dask.pwf import solver
 from pwf_dask.simulation import (
     PAPER_BEAD_RADIUS_M,
     PRESETS,
@@ -20,6 +22,7 @@ from pwf_dask.simulation import (
     scan_phantom,
     simulate_scan,
 )
+from pwf_dask.stores import scan_io
 
 FAST = dict(max_iter=25, tol=0.0)
 

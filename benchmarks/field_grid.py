@@ -1,0 +1,145 @@
+"""The field grid an aliasing diffuser needs: accuracy and cost of 1, 1.25, 1.5 and 2x grids.
+
+On the paper's diffuser (four layers of P3000 at 0.65 um pixels) the fitted transmission's
+spectrum fills the detector band, and ``field_upsample="auto"`` puts the field on a finer grid
+(docs/methods.md, The diffuser estimate and its field grid). This measures which factor the
+default needs:
+
+1. accuracy: the bead scene of the tests (10 keV, L1 = 3 mm, L2 = 20 mm, P3000, 1e4 ph/px,
+   calibrated coherence, default alpha) at 256^2 (seeds 1-3) and 512^2 (seed 1), each grid
+   fixed: phase gain, the largest bead's phase contrast, attenuation gain, iterations, time;
+2. cost: one iteration (``pwf-dask bench``'s loop, one FFT thread) per grid at 1024^2 and on the
+   padded full-width slab of ``pwf-dask bench fullwidth`` (32 x 2560), in FFTs of the detector grid.
+
+    python -m benchmarks.field_grid [--out benchmarks/results]
+
+Writes ``field_grid.md``, ``field_grid.csv`` and ``field_grid_cost.csv`` (about 8 minutes on 2 cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from benchmarks.reporting import device_name, write_rows_csv
+from benchmarks.speed import iteration_benchmark
+from pwf_dask.pwf import solver
+from pwf_dask.retrieval import DIFFUSER_FIELD_UPSAMPLE, retrieve_projection
+from pwf_dask.simulation import SpeckleSetup, simulate_projection
+
+GRIDS = (1, 1.25, 1.5, 2)
+SCENES = (((256, 256), 1), ((256, 256), 2), ((256, 256), 3), ((512, 512), 1))
+
+
+def gain(recovered: np.ndarray, true: np.ndarray, inside: np.ndarray) -> float:
+    """Regression slope of recovered on true values over ``inside`` (offset free)."""
+    return float(np.polyfit(true[inside], recovered[inside], 1)[0])
+
+
+def bead_contrast(image: np.ndarray, sim, sphere) -> float:
+    """Mean over the bead's central disk minus the mean over a ring around it."""
+    ny, nx = image.shape
+    p = sim.pixel_size_m
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    r = np.hypot(xx - (sphere.u_m / p + (nx - 1) / 2), yy - (sphere.y_m / p + (ny - 1) / 2)) * p / sphere.radius_m
+    return float(np.mean(image[r < 0.5]) - np.mean(image[(r > 1.2) & (r < 1.6)]))
+
+
+def accuracy_rows() -> list[dict]:
+    rows = []
+    for shape, seed in SCENES:
+        sim = simulate_projection(SpeckleSetup(shape=shape, photons=1e4), seed=seed)
+        bead = max(sim.phantom.spheres, key=lambda s: s.radius_m)
+        inside = sim.attenuation > 0.2 * sim.attenuation.max()
+        for s in GRIDS:
+            t0 = time.perf_counter()
+            res = retrieve_projection(sim.sample, sim.reference, **sim.geometry(), field_upsample=s)
+            seconds = time.perf_counter() - t0
+            rows.append(
+                {
+                    "frame": f"{shape[0]} x {shape[1]}",
+                    "seed": seed,
+                    "field_grid": s,
+                    "phase_gain": gain(res.phase, sim.phase, sim.phase < -0.5),
+                    "bead_contrast_err_pct": 100
+                    * (bead_contrast(res.phase, sim, bead) / bead_contrast(sim.phase, sim, bead) - 1),
+                    "attenuation_gain": gain(res.attenuation, sim.attenuation, inside),
+                    "iterations": res.iterations,
+                    "converged": bool(res.converged),
+                    "seconds": seconds,
+                }
+            )
+            print(rows[-1], flush=True)
+    return rows
+
+
+def cost_rows() -> list[dict]:
+    rows = []
+    pad = 2 * 17
+    for label, shape in (("1024 x 1024", (1024, 1024)), ("32 x 2560 slab", (32, 2560))):
+        grid = (solver.fast_len(shape[0] + pad), solver.fast_len(shape[1] + pad))
+        for s in GRIDS:
+            r = iteration_benchmark(grid, field_upsample=s, repeat=3, fft_workers=1)
+            rows.append(
+                {
+                    "frame": label,
+                    "grid": f"{grid[0]} x {grid[1]}",
+                    "field_grid": s,
+                    "field_shape": "x".join(map(str, solver.field_grid(grid, s))),
+                    "iteration_ms": r["iteration_ms"],
+                    "fft_ms": r["fft_ms"],
+                    "fft_times": r["ratio"],
+                }
+            )
+            print(rows[-1], flush=True)
+    return rows
+
+
+def write_markdown(acc: list[dict], cost: list[dict], path: str) -> None:
+    lines = [
+        "# The field grid for an aliasing diffuser",
+        "",
+        f"`python -m benchmarks.field_grid` on {device_name(np)}. The paper's geometry and diffuser (four",
+        "layers of P3000, 1e4 ph/px), calibrated coherence, default alpha; each field grid fixed",
+        "(`field_upsample`). Bead = the largest bead's phase contrast against the truth.",
+        "",
+        "| frame | seed | field grid | phase gain | bead | attenuation gain | iterations | s |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    lines += [
+        f"| {r['frame']} | {r['seed']} | {r['field_grid']:g}x | {r['phase_gain']:.3f} "
+        f"| {r['bead_contrast_err_pct']:+.1f} % | {r['attenuation_gain']:.3f} "
+        f"| {r['iterations']} | {r['seconds']:.1f} |"
+        for r in acc
+    ]
+    lines += [
+        "",
+        "One iteration (one FFT thread), in FFTs of the padded detector grid:",
+        "",
+        "| frame | padded grid | field grid | field shape | iteration (ms) | FFT-times |",
+        "|---|---|---:|---|---:|---:|",
+    ]
+    lines += [
+        f"| {r['frame']} | {r['grid']} | {r['field_grid']:g}x | {r['field_shape']} | {r['iteration_ms']:.1f} "
+        f"| {r['fft_times']:.1f} |"
+        for r in cost
+    ]
+    lines += ["", f'`field_upsample="auto"` takes {DIFFUSER_FIELD_UPSAMPLE:g}x for an aliasing diffuser.']
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="benchmarks/results")
+    args = ap.parse_args()
+    acc, cost = accuracy_rows(), cost_rows()
+    write_rows_csv(args.out, "field_grid.csv", acc)
+    write_rows_csv(args.out, "field_grid_cost.csv", cost)
+    write_markdown(acc, cost, f"{args.out}/field_grid.md")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,159 @@
+"""Phase gain against frame size, and the wide-strip regime of issue #27 (docs/methods.md, Wide frames).
+
+Two scenes, PWF with its defaults (calibrated coherence, automatic field grid and alpha):
+
+1. ``beads``: the paper's geometry and diffuser (10 keV, 0.65 um, L1 = 3 mm, L2 = 20 mm, four
+   layers of P3000, 1e4 ph/px); one cellulose rod with glass beads, sized for a 256 px field of
+   view, in the middle of 256^2, 512^2 and 1024^2 frames: the same sample, more frame around it.
+2. ``strip``: the real scan's regime: 25 keV, 6.5 um pixels, the diffuser 50 mm upstream of the
+   sample (L1 = 0), L2 = 0.7 m, coherence 25 / 20 um (6.7 % speckle visibility), four PMMA rods
+   of 1.5-3.3 mm across a 2220 px strip, the last cut by the frame's edge; crops of 160 and 430
+   rows by 700 and 2220 columns. ``--truth-start`` adds a run started from the true psi.
+
+    python -m benchmarks.frame_size [--scenes beads strip] [--sizes 256 512 1024] [--out benchmarks/results]
+
+Writes ``frame_size.md`` and ``.csv`` (about 15 minutes on 2 cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from benchmarks.reporting import device_name, write_rows_csv
+from pwf_dask.retrieval import retrieve_projection
+from pwf_dask.simulation import GEOMETRY_KEYS, Rods, SpeckleSetup, SpeckleSimulator, default_phantom
+
+STRIP_SETUP = SpeckleSetup(
+    shape=(430, 2220),
+    energy_eV=25000.0,
+    pixel_size_m=6.5e-6,
+    sample_diffuser_distance_m=0.0,
+    diffuser_detector_distance_m=0.7,
+    diffuser_upstream_m=0.05,
+    coherence_length_x_m=25e-6,
+    coherence_length_y_m=20e-6,
+    photons=1e4,
+)
+STRIP_CROPS = [(160, 700), (430, 700), (160, 2220), (430, 2220)]
+
+
+def phase_gain(recovered: np.ndarray, true: np.ndarray) -> float:
+    """Slope of recovered on true phase where the sample is (> 2 % of its deepest phase),
+    after removing the recovered background's mean (true phase 0 there)."""
+    inside = np.abs(true) > 0.02 * np.abs(true).max()
+    background = np.abs(true) < 1e-6
+    r = recovered - (recovered[background].mean() if background.any() else 0.0)
+    return float(np.dot(r[inside], true[inside]) / np.dot(true[inside], true[inside]))
+
+
+def strip_rods(width_px: int, pixel_size_m: float) -> Rods:
+    w = width_px * pixel_size_m
+    return Rods(u_m=(-0.36 * w, -0.08 * w, 0.17 * w, 0.5 * w - 0.4e-3), radii_m=(1.65e-3, 1.0e-3, 0.75e-3, 1.65e-3))
+
+
+def _retrieve(sample, reference, setup: SpeckleSetup, initial="zero"):
+    t0 = time.perf_counter()
+    r = retrieve_projection(
+        sample,
+        reference,
+        **{name: getattr(setup, name) for name in GEOMETRY_KEYS},
+        diffuser_upstream_m=setup.diffuser_upstream_m,
+        initial=initial,
+    )
+    return r, time.perf_counter() - t0
+
+
+def _row(scene, frame, r, seconds, gain, start="zero") -> dict:
+    p = r.parameters
+    return {
+        "scene": scene,
+        "frame": frame,
+        "start": start,
+        "phase_gain": gain,
+        "iterations": r.iterations,
+        "stop": p["stop_reason"],
+        "residual_pct": r.residual_rmse,
+        "field_upsample": p["field_upsample"],
+        "coherence_x_um": 1e6 * r.coherence_length_x_m,
+        "seconds": seconds,
+    }
+
+
+def beads(sizes: list[int], seed: int = 1) -> list[dict]:
+    rows = []
+    base = SpeckleSetup()
+    fov = 256 * base.pixel_size_m
+    phantom = default_phantom(fov, np.random.default_rng(seed + 1), height_m=fov)
+    for n in sizes:
+        setup = replace(base, shape=(n, n))
+        sim = SpeckleSimulator(setup, seed=seed)
+        sample, phase, _ = sim.project(phantom)
+        r, s = _retrieve(sample, sim.reference(), setup)
+        rows.append(_row("beads", f"{n} x {n}", r, s, phase_gain(np.asarray(r.phase), phase)))
+        print(rows[-1], flush=True)
+    return rows
+
+
+def strip(truth_start: bool, seed: int = 1) -> list[dict]:
+    sim = SpeckleSimulator(STRIP_SETUP, seed=seed)
+    sample, phase, attenuation = sim.project(strip_rods(STRIP_SETUP.shape[1], STRIP_SETUP.pixel_size_m))
+    reference = sim.reference()
+    rows = []
+    for ny, nx in STRIP_CROPS:
+        y0 = (STRIP_SETUP.shape[0] - ny) // 2
+        crop = np.s_[y0 : y0 + ny, :nx]
+        starts = ["zero", "truth"] if truth_start and (ny, nx) == (160, 2220) else ["zero"]
+        for start in starts:
+            initial = "zero" if start == "zero" else -attenuation[crop] + 1j * phase[crop]
+            r, s = _retrieve(sample[crop], reference[crop], STRIP_SETUP, initial)
+            rows.append(_row("strip", f"{ny} x {nx}", r, s, phase_gain(np.asarray(r.phase), phase[crop]), start))
+            print(rows[-1], flush=True)
+    return rows
+
+
+def write_markdown(rows: list[dict], path: str) -> None:
+    head = "| scene | frame | start | phase gain | iterations | stop | residual % | field grid | coherence x (um) | s |"
+    lines = [
+        "# Phase gain against frame size",
+        "",
+        f"`python -m benchmarks.frame_size` on {device_name(np)}. PWF defaults (calibrated coherence);",
+        "gain = slope of recovered on true phase inside the sample.",
+        "",
+        head,
+        "|" + "---|" * 10,
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['scene']} | {r['frame']} | {r['start']} | {r['phase_gain']:.3f} | {r['iterations']} | {r['stop']} "
+            f"| {r['residual_pct']:.2f} | {r['field_upsample']}x | {r['coherence_x_um']:.2f} | {r['seconds']:.0f} |"
+        )
+    gains = [r["phase_gain"] for r in rows if r["scene"] == "beads"]
+    if len(gains) > 1:
+        spread = (max(gains) - min(gains)) / np.mean(gains)
+        lines += ["", f"Bead scene: gains spread {100 * spread:.1f} % across frame sizes (target: within 3 %)."]
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", nargs="+", default=["beads", "strip"], choices=["beads", "strip"])
+    ap.add_argument("--sizes", nargs="+", type=int, default=[256, 512, 1024], help="bead scene frame sizes (px)")
+    ap.add_argument("--truth-start", action="store_true", help="also start the 160 x 2220 strip from the truth")
+    ap.add_argument("--out", default="benchmarks/results", help="folder for frame_size.md and .csv")
+    a = ap.parse_args()
+    rows: list[dict] = []
+    if "beads" in a.scenes:
+        rows += beads(a.sizes)
+    if "strip" in a.scenes:
+        rows += strip(a.truth_start)
+    write_rows_csv(a.out, "frame_size.csv", rows)
+    write_markdown(rows, f"{a.out}/frame_size.md")
+
+
+if __name__ == "__main__":
+    main()

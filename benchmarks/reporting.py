@@ -1,0 +1,53 @@
+"""What every benchmark and study shares: timing ratios within one run, the device's name, rows to CSV."""
+
+from __future__ import annotations
+
+import csv
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pwf_dask.backend import default_fft_workers
+
+
+def interleaved_min(fns, sync, rounds: int, min_time: float = 0.15) -> list[float]:
+    """Seconds per call of each function, the minimum over ``rounds`` rounds that alternate
+    the functions, so that a noisy neighbour slows both sides of a ratio alike."""
+    for fn in fns:
+        fn()
+    sync()
+    best = [float("inf")] * len(fns)
+    for _ in range(rounds):
+        for i, fn in enumerate(fns):
+            n = 0
+            t0 = time.perf_counter()
+            while True:
+                fn()
+                n += 1
+                sync()
+                el = time.perf_counter() - t0
+                if el > min_time:
+                    break
+            best[i] = min(best[i], el / n)
+    return best
+
+
+def device_name(xp) -> str:
+    if xp is np:
+        return f"CPU {platform.processor() or platform.machine()} ({default_fft_workers()} FFT threads)"
+    props = xp.cuda.runtime.getDeviceProperties(xp.cuda.Device().id)
+    name = props["name"]
+    return name.decode() if isinstance(name, bytes) else str(name)
+
+
+def write_rows_csv(out_dir: str | Path, name: str, rows: list[dict]) -> Path:
+    """Rows (dicts with the same keys) as ``out_dir/name``, creating the folder."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / name, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return out

@@ -1,0 +1,50 @@
+"""Calibration from the reference speckle, once per diffuser position (Methods: IOTF; Diffuser transmission function).
+
+* :mod:`~pwf_dask.calibration.coherence` - the coherence lengths x_coh, y_coh of the IOTF,
+  Eq. (IOTF), and the photon noise of a frame;
+* :mod:`~pwf_dask.calibration.diffuser` - the diffuser's transmission function t_r;
+* :mod:`~pwf_dask.calibration.drift` - the diffuser's drift between reference and sample
+  frames (not in the paper).
+"""
+
+from pwf_dask.calibration.coherence import (
+    COHERENCE_METHODS,
+    CoherenceFit,
+    coherence_lengths,
+    fit_coherence_lengths,
+    noise_to_signal,
+    photon_noise_pct,
+    speckle_spectrum,
+    spectrum_tile,
+    white_noise_floor,
+)
+from pwf_dask.calibration.diffuser import (
+    DIFFUSER_MODELS,
+    DiffuserEstimate,
+    ctf_phase_delay,
+    diffuser_transmission,
+    refine_phase_screen,
+    single_material_diffuser,
+)
+from pwf_dask.calibration.drift import shift_transmission, speckle_drift_px, unseen_by_reference
+
+__all__ = [
+    "COHERENCE_METHODS",
+    "DIFFUSER_MODELS",
+    "CoherenceFit",
+    "DiffuserEstimate",
+    "coherence_lengths",
+    "ctf_phase_delay",
+    "diffuser_transmission",
+    "fit_coherence_lengths",
+    "noise_to_signal",
+    "photon_noise_pct",
+    "refine_phase_screen",
+    "shift_transmission",
+    "single_material_diffuser",
+    "speckle_drift_px",
+    "speckle_spectrum",
+    "spectrum_tile",
+    "unseen_by_reference",
+    "white_noise_floor",
+]

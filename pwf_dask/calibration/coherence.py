@@ -1,0 +1,397 @@
+"""Coherence calibration from the reference speckle (Methods: IOTF, Eq. (IOTF) and Eq. (sigert)).
+
+* :func:`fit_coherence_lengths` (and its pair-returning :func:`coherence_lengths`) - x_coh,
+  y_coh of the IOTF, Eq. (IOTF). By default the reference's spectrum is fitted as simulated
+  coherent sandpaper speckle at the scan's geometry (:mod:`pwf_dask.physics.diffusers`) times the
+  Gaussian IOTF, the template of least chi^2 winning (``method="template"``); the paper's
+  Siegert fit, Eq. (sigert), the Gaussian alone, is ``method="gaussian"``
+  (docs/methods.md, "Coherence calibration").
+* :func:`photon_noise_pct` - the sample image's photon noise from its white spectral floor
+  (the level of ``alpha="discrepancy"``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from scipy import ndimage
+
+from pwf_dask.backend import get_array_module, to_numpy
+
+
+def _axis_power_spectra(img: np.ndarray):
+    """1-D power spectra along x and along y (Hann-windowed, averaged over the other axis),
+    their frequencies (cycles/pixel), and the white-noise floor from the 2-D spectrum's
+    corners beyond the Nyquist circle, where the IOTF has removed all speckle."""
+    ny, nx = img.shape
+    win = np.outer(np.hanning(ny), np.hanning(nx))
+    spec = np.abs(np.fft.fft2((img - img.mean()) * win)) ** 2
+    v, u = np.fft.fftfreq(ny)[:, None], np.fft.fftfreq(nx)[None, :]
+    corners = (u * u + v * v) > 0.3
+    # a white-noise periodogram is exponentially distributed: its median is ln 2 of the
+    # mean floor that the 1-D spectra carry (the median alone left 31 % of it on the flank)
+    noise = float(np.median(spec[np.broadcast_to(corners, spec.shape)])) / np.log(2.0)
+    px = spec.mean(axis=0)[: nx // 2]
+    py = spec.mean(axis=1)[: ny // 2]
+    return (np.fft.fftfreq(nx)[: nx // 2], px), (np.fft.fftfreq(ny)[: ny // 2], py), noise
+
+
+def _fit_gaussian_flank(freq: np.ndarray, power: np.ndarray, noise: float) -> float:
+    """Width c of exp(-pi c^2 q^2) fitted to the decaying flank of ``power - noise``.
+
+    The flank runs from where the spectrum has fallen to 70 % of its peak down to 0.3 %
+    of it (or the noise): there the IOTF^2 dominates the shape.
+    """
+    sig = power - noise
+    smooth = np.convolve(sig, np.ones(3) / 3, mode="same")
+    ipk = int(np.argmax(smooth[1:])) + 1
+    peak = smooth[ipk]
+    sel = np.zeros(freq.shape, bool)
+    for i in range(ipk, freq.size):
+        if smooth[i] < max(3e-3 * peak, 3 * noise / np.sqrt(max(power.size, 1))):
+            break
+        # a point the noise pushed to or below zero has no logarithm to fit
+        if smooth[i] <= 0.7 * peak and sig[i] > 0:
+            sel[i] = True
+    if sel.sum() < 3:
+        raise ValueError("too few frequencies on the spectrum's flank")
+    q2 = freq[sel] ** 2
+    slope, _ = np.polyfit(q2, np.log(sig[sel]), 1, w=np.sqrt(sig[sel] / peak))
+    if not slope < 0:
+        raise ValueError("the spectrum does not decay")
+    return float(np.sqrt(-slope / np.pi))
+
+
+def _gaussian_flank_lengths(img: np.ndarray, pixel_size_m: float) -> tuple[float, float]:
+    """The Gaussian model alone, Eq. (sigert): exp(-pi c^2 q^2) fitted on the decaying flank of
+    the 1-D power spectra along x and y (each averaged over the other axis), white noise
+    subtracted. The paper fits the same Gaussian to the autocorrelation; in Fourier space the
+    band-pass coherent speckle of a phase diffuser (little power at low frequencies, negative
+    lobes in the autocorrelation) does not bias it short. Lengths include the pixel's blur.
+    Exact for delta-correlated speckle; long when the coherent speckle's own spectrum falls
+    across the flank (sandpaper grains: :func:`fit_coherence_lengths`)."""
+    img = img - ndimage.gaussian_filter(img, 32.0, mode="reflect")
+    (fx, px), (fy, py), noise = _axis_power_spectra(img)
+    out = []
+    for name, f, p in (("x", fx, px), ("y", fy, py)):
+        try:
+            c = _fit_gaussian_flank(f, p, noise)
+        except ValueError as exc:
+            raise ValueError(
+                f"coherence-length fit along {name} failed ({exc}): the reference shows no resolvable "
+                "speckle blur; give coherence_length_x_m and coherence_length_y_m explicitly"
+            ) from None
+        out.append(c * pixel_size_m)
+    return out[0], out[1]
+
+
+# --- coherence lengths: the IOTF fitted jointly with the diffuser's own speckle spectrum -----
+
+#: largest Welch tile (px) of the reference's power spectrum (:func:`spectrum_tile`)
+SPECTRUM_TILE_PX = 128
+#: lowest frequency (cycles/px) of the fit: below it lie the flat field's residue and the
+#: grains' size peak, which the data measure so precisely that a template's realisation noise
+#: there outweighs the flank that carries the coherence blur
+FIT_MIN_FREQUENCY = 0.06
+#: only frequencies where the spectrum stands this many times above the white noise floor
+FIT_MIN_SIGNAL_TO_NOISE = 3.0
+#: median grain radii of the templates (0.5-16 um in steps of 2^(1/4)); searched on every
+#: second radius first, then on the two neighbours of the best
+TEMPLATE_RADII_M = tuple(0.5e-6 * 2 ** (k / 4) for k in range(21))
+TEMPLATE_SEEDS = (1, 2)
+#: methods of :func:`fit_coherence_lengths`
+COHERENCE_METHODS = ("template", "gaussian")
+
+
+def _tiles(shape: tuple[int, int], tile: tuple[int, int]):
+    (ny, nx), (ty, tx) = shape, tile
+    for y0 in range(0, ny - ty + 1, max(ty // 2, 1)):
+        for x0 in range(0, nx - tx + 1, max(tx // 2, 1)):
+            yield slice(y0, y0 + ty), slice(x0, x0 + tx)
+
+
+def _symmetrised(a: np.ndarray) -> np.ndarray:
+    """The mean of a(u, v), a(-u, v), a(u, -v), a(-u, -v) on fft grids: equal in expectation
+    for a spectrum taken through a symmetric window (a Gaussian IOTF, an isotropic diffuser)."""
+
+    def flip(b, axis):
+        return np.roll(np.flip(b, axis), 1, axis)
+
+    return 0.25 * (a + flip(a, 0) + flip(a, 1) + flip(flip(a, 0), 1))
+
+
+def speckle_spectrum(img: np.ndarray, tile: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Welch estimate of the 2-D power spectrum of ``img`` (Hann tiles of ``tile`` px, half
+    overlapping, each tile's mean removed; units: variance per frequency bin) and the variance
+    of that estimate from the tiles' own scatter, both symmetrised (:func:`_symmetrised`).
+
+    The scatter is measured, not taken from Gaussian statistics: the speckle of coarse grains
+    is far from Gaussian (bright caustics), and its periodogram scatters 2-4x more.
+    """
+    win = np.outer(np.hanning(tile[0]), np.hanning(tile[1]))
+    norm = float(np.sum(win**2))
+    s1 = np.zeros(tile)
+    s2 = np.zeros(tile)
+    n = 0
+    for rows, cols in _tiles(img.shape, tile):
+        a = img[rows, cols]
+        p = np.abs(np.fft.fft2((a - a.mean()) * win)) ** 2 / norm
+        s1 += p
+        s2 += p * p
+        n += 1
+    mean = s1 / n
+    var = np.maximum(s2 / n - mean**2, 0.0) / max(n - 1, 1)
+    # a(u, v) and a(-u, -v) are one number: symmetrising halves the variance, not quarters it
+    return _symmetrised(mean), _symmetrised(var) / 2.0
+
+
+def spectrum_tile(frame_shape: tuple[int, int]) -> tuple[int, int]:
+    """Welch tile per axis: the largest power of two up to half the frame (so that at least
+    three half-overlapping tiles measure the scatter), at most :data:`SPECTRUM_TILE_PX`, at
+    least 32 px (or the frame)."""
+
+    def side(n: int) -> int:
+        power = 1 << max(int(np.log2(max(n // 2, 1))), 0)
+        return min(n, max(32, min(SPECTRUM_TILE_PX, power)))
+
+    return side(frame_shape[0]), side(frame_shape[1])
+
+
+def white_noise_floor(img: np.ndarray) -> float:
+    """Photon noise per frequency bin (the units of :func:`speckle_spectrum`): the median of the
+    periodogram beyond the Nyquist circle, where the IOTF has removed all speckle, over ln 2 (a
+    white-noise periodogram is exponential: its median alone left 31 % of the floor)."""
+    ny, nx = img.shape
+    spec = np.abs(np.fft.fft2(img - img.mean())) ** 2 / (ny * nx)
+    v, u = np.fft.fftfreq(ny)[:, None], np.fft.fftfreq(nx)[None, :]
+    corners = np.broadcast_to((u * u + v * v) > 0.3, spec.shape)
+    return float(np.median(spec[corners])) / np.log(2.0)
+
+
+def photon_noise_pct(image, mean_reference: float) -> float:
+    """RMS photon noise of ``image`` in % of the mean reference, from its white spectral floor
+    (:func:`white_noise_floor`; the IOTF has blurred away every structure out there). This is
+    the level :func:`pwf_dask.pwf.solver.discrepancy_alpha` fits the data down to."""
+    return 100.0 * float(np.sqrt(white_noise_floor(np.asarray(image, np.float64) / mean_reference)))
+
+
+def _pixel_transfer_squared(tile: tuple[int, int]) -> np.ndarray:
+    """|sinc(u) sinc(v)|^2 on a tile's fft grid (cycles per pixel): what a detector pixel
+    does to the spectrum of the intensity it integrates."""
+    v, u = np.fft.fftfreq(tile[0])[:, None], np.fft.fftfreq(tile[1])[None, :]
+    return (np.sinc(u) * np.sinc(v)) ** 2
+
+
+def _ring_average(spectrum: np.ndarray) -> np.ndarray:
+    """``spectrum`` averaged over rings of |q| (cycles per pixel, width one bin of the larger
+    tile side) and put back on its grid by linear interpolation; the pixel's transfer, which
+    is not isotropic, is divided out first and multiplied back after."""
+    tile = spectrum.shape
+    mtf2 = _pixel_transfer_squared(tile)
+    v, u = np.fft.fftfreq(tile[0])[:, None], np.fft.fftfreq(tile[1])[None, :]
+    q = np.broadcast_to(np.hypot(u, v), tile).ravel()
+    width = 1.0 / max(tile)
+    ring = np.floor(q / width).astype(int)
+    total = np.bincount(ring, (spectrum / mtf2).ravel())
+    count = np.bincount(ring)
+    filled = count > 0
+    centres = (np.flatnonzero(filled) + 0.5) * width
+    profile = total[filled] / count[filled]
+    return np.interp(q, centres, profile).reshape(tile) * mtf2
+
+
+@lru_cache(maxsize=256)
+def _template_spectrum(
+    tile: tuple[int, int],
+    pixel_size_m: float,
+    energy_eV: float,
+    distance_m: float,
+    material: str,
+    radius_m: float,
+) -> np.ndarray:
+    """Spectrum of the coherent speckle of mixed grains of median radius ``radius_m``
+    (:func:`pwf_dask.physics.diffusers.coherent_speckle`), taken exactly as the data's
+    (:func:`speckle_spectrum`, the same tiles and window), averaged over
+    :data:`TEMPLATE_SEEDS` and over rings of |q| (the grains are isotropic): noise-free next to
+    the data's, so every template is judged with the data's own error bars."""
+    from pwf_dask.physics import diffusers
+
+    side = max(256, int(16 * radius_m / pixel_size_m))
+    frame = (max(side, 2 * tile[0]), max(side, 2 * tile[1]))
+    total = np.zeros(tile)
+    for seed in TEMPLATE_SEEDS:
+        speckle = diffusers.coherent_speckle(
+            frame,
+            pixel_size_m=pixel_size_m,
+            energy_eV=energy_eV,
+            distance_m=distance_m,
+            radius_median_m=radius_m,
+            grain_shape="mixed",
+            material=material,
+            seed=seed,
+        )
+        total += speckle_spectrum(speckle, tile)[0]
+    return _ring_average(total / len(TEMPLATE_SEEDS))
+
+
+def _fit_iotf(spectrum, variance, noise: float, template):
+    """Weighted least squares of log(S - N) = log A + log T - pi (u^2 x^2 + v^2 y^2): the
+    template T times Eq. (IOTF) squared, linear in (log A, x^2, y^2) with u, v in cycles per
+    pixel and lengths in pixels, weighted by the data's own scatter (the templates are
+    noise-free: :func:`_template_spectrum`). Returns (x_px, y_px, chi2, points), or None
+    without positive lengths or with too few frequencies above the noise."""
+    ty, tx = spectrum.shape
+    v = np.broadcast_to(np.fft.fftfreq(ty)[:, None], spectrum.shape)
+    u = np.broadcast_to(np.fft.fftfreq(tx)[None, :], spectrum.shape)
+    q = np.hypot(u, v)
+    use = (
+        (spectrum > FIT_MIN_SIGNAL_TO_NOISE * noise)
+        & (q >= FIT_MIN_FREQUENCY)
+        & (q < 0.5)
+        & (template > 0)
+        & (u >= 0)
+        & (v >= 0)
+    )
+    if use.sum() < 12:
+        return None
+    signal = spectrum[use] - noise
+    y = np.log(signal) - np.log(template[use])
+    sd = np.maximum(np.sqrt(variance[use]) / signal, 1e-3)  # a scatter-free bin must not weigh infinitely
+    design = np.stack([np.ones(y.size), -np.pi * u[use] ** 2, -np.pi * v[use] ** 2], axis=1)
+    coef, *_ = np.linalg.lstsq(design / sd[:, None], y / sd, rcond=None)
+    if not (coef[1] > 0 and coef[2] > 0):
+        return None
+    chi2 = float(np.sum(((design @ coef - y) / sd) ** 2))
+    return float(np.sqrt(coef[1])), float(np.sqrt(coef[2])), chi2, int(use.sum())
+
+
+@dataclass(frozen=True)
+class CoherenceFit:
+    """Coherence lengths fitted to a reference, and what the fit chose (:func:`fit_coherence_lengths`)."""
+
+    x_m: float
+    y_m: float
+    method: str  # "template" or "gaussian"
+    #: the coherent speckle the IOTF was fitted against: "mixed grains" (of median radius
+    #: ``grain_radius_m``) or "white" (delta-correlated, the Siegert premise); "" for "gaussian"
+    template: str = ""
+    grain_radius_m: float | None = None
+    #: the winning template's chi^2 per frequency fitted (:func:`_fit_iotf`)
+    chi2_per_point: float | None = None
+    points: int = 0
+
+    @property
+    def includes_pixel_blur(self) -> bool:
+        """The Gaussian fit's lengths carry the pixel's blur; the template fit's do not."""
+        return self.method == "gaussian"
+
+
+def fit_coherence_lengths(
+    reference,
+    pixel_size_m: float,
+    *,
+    energy_eV: float | None = None,
+    diffuser_detector_distance_m: float | None = None,
+    diffuser_material: str = "silicon carbide",
+    method: str = "template",
+) -> CoherenceFit:
+    """Coherence lengths (x_coh, y_coh) from the reference speckle (Methods, IOTF).
+
+    The reference's power spectrum is the coherent speckle's own spectrum C(q), times IOTF(q)^2
+    of Eq. (IOTF), times the pixel's transfer function squared, plus white photon noise. The
+    paper fits the Gaussian alone (the Siegert relation, Eq. (sigert)), which presumes C flat:
+    speckle grains far finer than the coherence length. Sandpaper's are not (P3000: 6.5 um
+    across, against 3.5-4.3 um), so C falls across the IOTF's flank too and the Gaussian alone
+    came out 11-52 % long over grains of 1-5 um radius, L2 of 10-100 mm and two grain shapes
+    (docs/methods.md, "Coherence calibration").
+
+    ``method="template"`` (default) fits the IOTF jointly with C. C is the simulated coherent
+    speckle of mixed round and faceted grains at this geometry (:mod:`pwf_dask.physics.diffusers`)
+    over a grid of median grain radii, or white speckle; the template of least chi^2 wins.
+    Sharp-edged grains give C a power-law tail that a Gaussian cannot imitate: that is what
+    separates the two factors, and a diffuser of smooth blobs would still read long. The
+    lengths exclude the detector pixel's blur (the templates carry it), so PWF models pixel
+    integration on top. ``method="gaussian"``: the Gaussian flank fit alone
+    (:func:`_gaussian_flank_lengths`), also what is used without the geometry.
+    """
+    img = to_numpy(reference).astype(np.float64)
+    if img.ndim != 2 or min(img.shape) < 32:
+        raise ValueError(f"reference must be a 2-D image of at least 32 x 32 pixels, got shape {img.shape}")
+    if method not in COHERENCE_METHODS:
+        raise ValueError(f"unknown coherence method {method!r}: choose one of {', '.join(COHERENCE_METHODS)}")
+    if method == "gaussian" or energy_eV is None or diffuser_detector_distance_m is None:
+        x, y = _gaussian_flank_lengths(img, pixel_size_m)
+        return CoherenceFit(x, y, "gaussian")
+    mean = float(img.mean())
+    if not mean > 0:
+        raise ValueError("reference has zero mean intensity")
+    img = img / mean
+    tile = spectrum_tile(img.shape)
+    spectrum, variance = speckle_spectrum(img, tile)
+    noise = white_noise_floor(img)
+    geometry = (tile, float(pixel_size_m), float(energy_eV), float(diffuser_detector_distance_m), diffuser_material)
+    fits: dict[tuple[str, float | None], tuple | None] = {}
+
+    def fit_grains(radius: float) -> None:
+        if ("mixed grains", radius) not in fits:
+            fits[("mixed grains", radius)] = _fit_iotf(spectrum, variance, noise, _template_spectrum(*geometry, radius))
+
+    def chi2(key) -> float:
+        found = fits[key]
+        return math.inf if found is None else found[2]
+
+    for radius in TEMPLATE_RADII_M[::2]:
+        fit_grains(radius)
+    k = TEMPLATE_RADII_M.index(min(fits, key=chi2)[1])
+    for j in (k - 1, k + 1):
+        if 0 <= j < len(TEMPLATE_RADII_M):
+            fit_grains(TEMPLATE_RADII_M[j])
+    # delta-correlated speckle (the Siegert premise) as a detector pixel sees it
+    fits[("white", None)] = _fit_iotf(spectrum, variance, noise, _pixel_transfer_squared(tile))
+    best = min(fits, key=chi2)
+    if fits[best] is None:
+        raise ValueError(
+            "coherence-length fit failed: the reference shows no resolvable speckle blur above the noise; "
+            "give coherence_length_x_m and coherence_length_y_m explicitly"
+        )
+    x_px, y_px, best_chi2, points = fits[best]
+    return CoherenceFit(
+        x_m=x_px * pixel_size_m,
+        y_m=y_px * pixel_size_m,
+        method="template",
+        template=best[0],
+        grain_radius_m=best[1],
+        chi2_per_point=best_chi2 / points,
+        points=points,
+    )
+
+
+def coherence_lengths(reference, pixel_size_m: float, **options) -> tuple[float, float]:
+    """(x_coh, y_coh) in metres from the reference speckle: :func:`fit_coherence_lengths`
+    with the same keyword options, its lengths alone."""
+    fit = fit_coherence_lengths(reference, pixel_size_m, **options)
+    return fit.x_m, fit.y_m
+
+
+def noise_to_signal(reference_spectrum_power, pixel_radius2, iotf_half) -> float:
+    """Scalar noise-to-signal ratio of the Wiener filter.
+
+    White noise fills the spectrum beyond the Nyquist circle (u^2 + v^2 > 1/4 cycles/pixel^2,
+    the corners), where the IOTF has removed any speckle; the coherent signal power is what
+    the low-frequency band holds above that floor, corrected for the IOTF there.
+    """
+    xp = get_array_module(reference_spectrum_power)
+    corners = pixel_radius2 > 0.25
+    noise = float(xp.mean(reference_spectrum_power[corners])) if bool(xp.any(corners)) else 0.0
+    if iotf_half is None:
+        return 0.0
+    band = (iotf_half > 0.5) & (pixel_radius2 > 0)
+    if not bool(xp.any(band)):
+        return 0.0
+    signal = float(xp.mean((reference_spectrum_power[band] - noise) / iotf_half[band] ** 2))
+    if signal <= 0:
+        return 1.0
+    return noise / signal

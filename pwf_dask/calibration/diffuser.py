@@ -1,0 +1,307 @@
+"""The diffuser's transmission function t_r from the reference speckle (Methods: Diffuser transmission function).
+
+* :func:`diffuser_transmission` - t_r: Wiener deconvolution of the reference with the IOTF,
+  negatives clipped, square root, zero phase, back-propagation over L2 (the paper's
+  estimate, ``diffuser_model="zero-phase"``); or, by default, a single-material phase screen
+  t_r = exp(-(kappa + i) theta_r) fitted to the reference (``"single-material"``, see
+  :func:`single_material_diffuser`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from pwf_dask.backend import FFT, get_array_module
+from pwf_dask.calibration.coherence import noise_to_signal
+from pwf_dask.physics import optics
+
+
+def diffuser_transmission(
+    reference,
+    *,
+    pixel_size_m: float,
+    wavelength: float,
+    diffuser_detector_distance_m: float,
+    coherence_length_x_m: float,
+    coherence_length_y_m: float,
+    pad: int = 0,
+    shape: tuple[int, int] | None = None,
+    nsr: float | None = None,
+    phase_screen_iter: int = 0,
+    diffuser_model: str = "zero-phase",
+    beta_over_delta: float | None = None,
+    refine_iter: int = 25,
+    upstream_m: float = 0.0,
+    fft: FFT | None = None,
+):
+    """Diffuser transmission t_r (Methods, Diffuser transmission function).
+
+    ``diffuser_model="single-material"`` returns :func:`single_material_diffuser` (needs
+    ``beta_over_delta``). With ``"zero-phase"`` (the paper's): the reference is
+    Wiener-deconvolved with the IOTF (estimating the coherent speckle intensity), clipped at
+    0, square-rooted, given zero phase and back-propagated by -L2. With ``pad`` the frame is
+    first extended by reflection to ``shape`` (the computational grid), so that light entering
+    the frame from outside is modelled by plausible speckle, not by periodic wrap-around.
+    ``upstream_m`` > 0 (not in the paper): the diffuser sits that far upstream of the sample
+    (the scan records L1 = 0), so the sample is lit by the diffuser's field propagated over
+    ``upstream_m`` and the reference is the diffuser seen over ``upstream_m`` + L2. The single
+    material is fitted over that whole distance and t_r is its field at the sample plane. The
+    zero-phase estimate does not depend on it (back-propagating over L2 + d and forward over
+    d is back-propagating over L2).
+    """
+    if diffuser_model not in DIFFUSER_MODELS:
+        raise ValueError(f"unknown diffuser_model {diffuser_model!r}: choose one of {', '.join(DIFFUSER_MODELS)}")
+    if not (math.isfinite(upstream_m) and upstream_m >= 0):
+        raise ValueError(f"diffuser_upstream_m must be >= 0, got {upstream_m}")
+    if diffuser_model == "single-material":
+        if beta_over_delta is None:
+            raise ValueError("diffuser_model='single-material' needs beta_over_delta")
+        t = single_material_diffuser(
+            reference,
+            beta_over_delta=beta_over_delta,
+            pixel_size_m=pixel_size_m,
+            wavelength=wavelength,
+            diffuser_detector_distance_m=diffuser_detector_distance_m + upstream_m,
+            coherence_length_x_m=coherence_length_x_m,
+            coherence_length_y_m=coherence_length_y_m,
+            pad=pad,
+            shape=shape,
+            nsr=nsr,
+            iterations=refine_iter,
+            fft=fft,
+        ).transmission
+        # the diffuser's field at the sample plane (0 m: the same array, nothing computed)
+        return optics.angular_spectrum_propagate(t, pixel_size_m, wavelength, upstream_m, fft)
+    xp = get_array_module(reference)
+    fft = fft or FFT.for_module(xp)
+    ref, shape = _padded_reference(reference, pad, shape, xp)
+    spec = fft.rfft2(ref)
+    h = optics.iotf(shape, pixel_size_m, coherence_length_x_m, coherence_length_y_m, xp, np.float64)
+    if h is not None:
+        v, u = optics.frequency_grid(shape, 1.0, half=True)
+        r2 = xp.asarray(u * u + v * v)
+        if nsr is None:
+            nsr = noise_to_signal(spec.real**2 + spec.imag**2, r2, h)
+        spec *= h / (h * h + max(nsr, 1e-12))
+    intensity = fft.irfft2(spec, s=shape)
+    amplitude = xp.sqrt(xp.clip(intensity, 0, None)).astype(xp.complex128)
+    t = optics.angular_spectrum_propagate(amplitude, pixel_size_m, wavelength, -diffuser_detector_distance_m, fft)
+    if phase_screen_iter:
+        t = refine_phase_screen(
+            t, amplitude.real, pixel_size_m, wavelength, diffuser_detector_distance_m, phase_screen_iter, fft
+        )
+    return t
+
+
+def refine_phase_screen(t, detector_amplitude, pixel_size_m, wavelength, distance_m, iterations, fft=None):
+    """Gerchberg-Saxton refinement of the zero-phase diffuser estimate towards a phase screen.
+
+    The zero-phase estimate reproduces the reference at exactly L2 but is strongly
+    amplitude-modulated at the diffuser (max|t|^2 ~ 6 on sandpaper), unlike a real abrasive
+    layer (|t| <= 1, nearly pure phase). Alternating |t| = mean|t| at the diffuser with the
+    measured amplitude at the detector gives a screen that also behaves like the real one at
+    other distances, which is what the sample's lens-like curvature probes.
+    """
+    xp = get_array_module(t)
+    fft = fft or FFT.for_module(xp)
+    k = optics.angular_spectrum_kernel(t.shape, pixel_size_m, wavelength, distance_m, xp, t.dtype)
+    kc = xp.conj(k)
+    level = float(xp.mean(xp.abs(t)))
+    for _ in range(iterations):
+        t = level * xp.exp(1j * xp.angle(t))
+        v = fft.ifft2(fft.fft2(t) * k)
+        v = detector_amplitude * xp.exp(1j * xp.angle(v))
+        t = fft.ifft2(fft.fft2(v) * kc)
+    return t
+
+
+DIFFUSER_MODELS = ("single-material", "zero-phase")
+
+
+@dataclass
+class DiffuserEstimate:
+    """A single-material diffuser fitted to the reference: t_r = exp(-(kappa + i) theta_r)."""
+
+    transmission: Any  # t_r on the computational grid (complex128)
+    phase_delay: Any  # theta_r = k delta T_r in radians (>= 0 where there is more material)
+    beta_over_delta: float
+    residual_rmse: float  # rms(|P2 t|^2 * IPSF - reference) over the frame, in units of its mean
+    initial_residual_rmse: float  # the same for the linear (CTF) start
+
+
+def _padded_reference(reference, pad: int, shape, xp):
+    ref = xp.asarray(reference, dtype=xp.float64)
+    ny, nx = ref.shape
+    shape = shape or (ny + 2 * pad, nx + 2 * pad)
+    if tuple(shape) != (ny, nx):
+        after = (shape[0] - ny - pad, shape[1] - nx - pad)
+        ref = xp.pad(ref, ((pad, after[0]), (pad, after[1])), mode="reflect")
+    return ref, tuple(shape)
+
+
+def ctf_phase_delay(
+    reference,
+    *,
+    beta_over_delta: float,
+    pixel_size_m: float,
+    wavelength: float,
+    diffuser_detector_distance_m: float,
+    coherence_length_x_m: float,
+    coherence_length_y_m: float,
+    pad: int = 0,
+    shape: tuple[int, int] | None = None,
+    nsr: float | None = None,
+    fft: FFT | None = None,
+):
+    """Linear (contrast transfer function) estimate of a single-material diffuser's phase delay.
+
+    A weak single-material object t = exp(-(kappa + i) theta) (kappa = beta/delta) gives, after
+    L2 and the IPSF, reference - 1 ~ -2 IOTF (sin chi + kappa cos chi) theta in Fourier space,
+    chi = pi lambda L2 q^2 (Cloetens et al. 1999). Inverted by a Wiener filter with the
+    noise-to-signal of :func:`noise_to_signal`; the start of :func:`single_material_diffuser`.
+    """
+    xp = get_array_module(reference)
+    fft = fft or FFT.for_module(xp)
+    ref, shape = _padded_reference(reference, pad, shape, xp)
+    spec = fft.rfft2(ref / float(xp.mean(ref)) - 1.0)
+    v, u = optics.frequency_grid(shape, pixel_size_m, half=True)
+    chi = np.pi * wavelength * diffuser_detector_distance_m * (u * u + v * v)
+    transfer = 2.0 * (np.sin(chi) + beta_over_delta * np.cos(chi))
+    h = optics.iotf(shape, pixel_size_m, coherence_length_x_m, coherence_length_y_m, np, np.float64)
+    if h is not None:
+        transfer = transfer * h
+    transfer = xp.asarray(transfer)
+    if nsr is None:
+        vp, up = optics.frequency_grid(shape, 1.0, half=True)
+        hh = xp.asarray(h) if h is not None else None
+        nsr = noise_to_signal(spec.real**2 + spec.imag**2, xp.asarray(up * up + vp * vp), hh)
+    theta_hat = -transfer * spec / (transfer * transfer + max(nsr, 1e-6))
+    theta_hat[0, 0] = 0
+    return fft.irfft2(theta_hat, s=shape)
+
+
+def _lbfgs(value_and_gradient, x, iterations: int, memory: int = 10, first_step: float = 0.1):
+    """Limited-memory BFGS with Armijo backtracking (Nocedal & Wright, Alg. 7.4/7.5), on any
+    array module; ``first_step`` bounds the first move (max |dx|)."""
+    xp = get_array_module(x)
+    f, g = value_and_gradient(x)
+    pairs: list[tuple[Any, Any, float]] = []
+    for _ in range(iterations):
+        q = g.copy()
+        coeffs = []
+        for s, y, rho in reversed(pairs):
+            a = rho * float(xp.vdot(s, q))
+            q -= a * y
+            coeffs.append(a)
+        if pairs:
+            s, y, _ = pairs[-1]
+            q *= float(xp.vdot(s, y)) / float(xp.vdot(y, y))
+        else:
+            q *= first_step / max(float(xp.max(xp.abs(g))), 1e-300)
+        for (s, y, rho), a in zip(pairs, reversed(coeffs)):
+            q += s * (a - rho * float(xp.vdot(y, q)))
+        slope = -float(xp.vdot(g, q))
+        if not slope < 0:  # not a descent direction: forget the curvature pairs
+            pairs.clear()
+            q = g * (first_step / max(float(xp.max(xp.abs(g))), 1e-300))
+            slope = -float(xp.vdot(g, q))
+        step = 1.0
+        while True:
+            x_new = x - step * q
+            f_new, g_new = value_and_gradient(x_new)
+            if f_new <= f + 1e-4 * step * slope:
+                break
+            step *= 0.5
+            if step < 1e-8:
+                return x, f
+        s, y = x_new - x, g_new - g
+        sy = float(xp.vdot(s, y))
+        if sy > 0:
+            pairs.append((s, y, 1.0 / sy))
+            if len(pairs) > memory:
+                pairs.pop(0)
+        x, f, g = x_new, f_new, g_new
+    return x, f
+
+
+def single_material_diffuser(
+    reference,
+    *,
+    beta_over_delta: float,
+    pixel_size_m: float,
+    wavelength: float,
+    diffuser_detector_distance_m: float,
+    coherence_length_x_m: float,
+    coherence_length_y_m: float,
+    pad: int = 0,
+    shape: tuple[int, int] | None = None,
+    nsr: float | None = None,
+    iterations: int = 25,
+    fft: FFT | None = None,
+) -> DiffuserEstimate:
+    """Diffuser transmission t_r = exp(-(kappa + i) theta_r) of one material (kappa = beta/delta)
+    that reproduces the reference: |P2{t}|^2 convolved with the IPSF, Eqs. (IPSF, IOTF), fitted
+    in least squares over the detector frame by L-BFGS from :func:`ctf_phase_delay`.
+
+    Why not the paper's zero phase: that estimate reproduces the reference at exactly L2 but
+    its speckle does not evolve with distance to first order (zero detector phase means dI/dz
+    = 0 by the TIE). A sample's lens-like curvature changes the effective distance, and PWF
+    then puts the missing evolution into extra curvature (+25 % bead phase contrast on the
+    test scene). A diffuser is one material (abrasive grains; kappa from xraydb), which makes
+    its phase retrievable from one image; at kappa = 0 the slow part of theta is not
+    (docs/methods.md). Returns the estimate with its fit residuals.
+    """
+    xp = get_array_module(reference)
+    fft = fft or FFT.for_module(xp)
+    ref, shape = _padded_reference(reference, pad, shape, xp)
+    ny, nx = xp.asarray(reference).shape
+    frame = (slice(pad, pad + ny), slice(pad, pad + nx))
+    ref = ref / float(xp.mean(ref[frame]))
+    theta = ctf_phase_delay(
+        ref,
+        beta_over_delta=beta_over_delta,
+        pixel_size_m=pixel_size_m,
+        wavelength=wavelength,
+        diffuser_detector_distance_m=diffuser_detector_distance_m,
+        coherence_length_x_m=coherence_length_x_m,
+        coherence_length_y_m=coherence_length_y_m,
+        shape=shape,
+        nsr=nsr,
+        fft=fft,
+    )
+    kernel = optics.angular_spectrum_kernel(
+        shape, pixel_size_m, wavelength, diffuser_detector_distance_m, xp, np.complex128
+    )
+    h = optics.iotf(shape, pixel_size_m, coherence_length_x_m, coherence_length_y_m, xp, np.float64)
+    weight = xp.zeros(shape)
+    weight[frame] = 1.0 / (ny * nx)
+    c = complex(-beta_over_delta, -1.0)
+
+    def blur(a):
+        return a if h is None else fft.irfft2(fft.rfft2(a) * h, s=shape)
+
+    def value_and_gradient(th):
+        t = xp.exp(c * th)
+        v = fft.ifft2(fft.fft2(t) * kernel)
+        r = blur(v.real**2 + v.imag**2) - ref
+        f = float(xp.sum(weight * r * r))
+        # d f / d theta by the chain rule through the IPSF, |v|^2, P2 and exp (Wirtinger)
+        back = fft.ifft2(fft.fft2(blur(2 * weight * r) * v) * xp.conj(kernel))
+        return f, 2 * xp.real(xp.conj(back) * c * t)
+
+    f0, _ = value_and_gradient(theta)
+    theta, f = _lbfgs(value_and_gradient, theta, iterations)
+    return DiffuserEstimate(
+        transmission=xp.exp(c * theta),
+        phase_delay=theta,
+        beta_over_delta=float(beta_over_delta),
+        residual_rmse=float(np.sqrt(f)),
+        initial_residual_rmse=float(np.sqrt(f0)),
+    )
+
+
+# --- diffuser drift between the reference and a sample image (not in the paper) -------------

@@ -1,0 +1,5 @@
+"""Physics of the set-up: free-space optics and the paper's Fourier filters (optics), refractive indices
+(materials), sandpaper diffusers (diffusers), detector defects (detector) and the background plane (background).
+
+Pure functions on NumPy or CuPy arrays; nothing here touches Dask or a store.
+"""

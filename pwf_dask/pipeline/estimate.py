@@ -1,0 +1,243 @@
+"""Memory and time of a scan's stages, predicted before it runs (``pwf-dask estimate SCAN``).
+
+Memory per worker is a linear model in the arrays a task holds, with coefficients measured on
+this project's code (issue #29; ``benchmarks/results/memory_model.md``, the commands there):
+
+* retrieval: ``RETRIEVAL_BASE_MB`` + bytes per pixel of the padded detector grid, more when
+  the sample field goes on a finer grid (``field_upsample`` u: u^2 - 1 extra fine pixels per
+  detector pixel), plus the diffuser estimates a worker keeps (one per position, 8 at most);
+* tomography: one row block's two sinograms (float32) and the FBP's working set per
+  sinogram element, plus the volume-sized arrays per output voxel;
+* FSC: two float32 tomograms and the single-precision FSC (16 bytes per voxel of spectra).
+
+Time: an iteration costs ``ITERATION_FFT_TIMES`` complex64 FFTs of the padded grid (the
+committed ``bench_iteration_cpu.md`` ratios), timed here on one FFT of the scan's own grid;
+the FBP of a slice costs a fixed part plus one per angle, timed here at the scan's width.
+Both are measured by :func:`measure_speeds` on the machine that runs the estimate.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+#: a worker process with pwf-dask, zarr and distributed imported, before any task (MB)
+WORKER_BASE_MB = 85.0
+#: retrieval: fixed part and bytes per padded detector-grid pixel (field_upsample 1), and per
+#: extra field-grid pixel when field_upsample > 1 (fit of peak RSS at 256^2-1024^2, 10 iterations)
+RETRIEVAL_BASE_MB = 59.0
+RETRIEVAL_BYTES_PER_PIXEL = 337.0
+RETRIEVAL_BYTES_PER_FIELD_PIXEL = 79.0
+#: tomography task (fit of peak RSS of ``workflow._tomo_task``, 256-1024 px): per sinogram
+#: element, both float32 sinograms as read (zarr's decode buffers beside them) and one FBP's
+#: filtered copy and slopes; per output voxel, the FBP's slice, its scaled copy and the
+#: background fit's float32 output
+TOMO_BASE_MB = 0.0
+TOMO_BYTES = {"backproject": (19.6, 18.6), "gridrec": (25.9, 18.8)}
+#: FSC: two float32 volumes, then the transform of each (complex64 half spectra) and slabs
+FSC_BYTES_PER_VOXEL = 8.0 + 16.0
+#: PWF iteration / complex64 FFT of the padded grid (bench_iteration_cpu.md, 2 threads)
+ITERATION_FFT_TIMES = {"l1>0": 16.0, "l1=0": 12.4, "field on 2x grid": 75.0}
+#: iterations per projection assumed when none is given: median with angle chains, demo/beads scans
+DEFAULT_ITERATIONS = 250
+
+
+@dataclass
+class StageEstimate:
+    """One stage: its tasks, the peak memory of one worker, and the time on ``workers``."""
+
+    stage: str
+    tasks: int
+    peak_mb_per_worker: float
+    seconds: float
+    note: str = ""
+
+
+@dataclass
+class Speeds:
+    """What :func:`measure_speeds` timed on this machine."""
+
+    fft_s: float  # one complex64 FFT of the padded grid
+    fbp_row_s: float  # FBP of one row (slice) of the scan's width: fixed part ...
+    fbp_row_s_per_angle: float  # ... and per angle
+    fbp: str = "backproject"  # the method timed
+
+    def slice_s(self, n_angles: int) -> float:
+        """One slice's FBP from ``n_angles`` projections."""
+        return self.fbp_row_s + self.fbp_row_s_per_angle * n_angles
+
+
+def padded_grid(shape: tuple[int, int], pad: int = 17) -> tuple[int, int]:
+    from pwf_dask.retrieval import computational_shape
+
+    return computational_shape(shape, pad)
+
+
+def measure_speeds(shape: tuple[int, int], fft_workers: int = 1, pad: int = 17, fbp: str = "auto") -> Speeds:
+    """Time one FFT of ``shape``'s padded grid, and the FBP ``fbp`` of two rows of the scan's
+    width from 16 and from 48 angles (its cost per slice: a fixed part plus one per angle)."""
+    import scipy.fft
+
+    from pwf_dask.backend import FFT
+    from pwf_dask.tomo import tomography
+
+    grid = padded_grid(shape, pad)
+    x = (np.random.default_rng(0).normal(size=grid) + 0j).astype(np.complex64)
+    scipy.fft.fft2(x, workers=fft_workers)
+    t = time.perf_counter()
+    for _ in range(3):
+        scipy.fft.fft2(x, workers=fft_workers)
+    fft_s = (time.perf_counter() - t) / 3
+    method = tomography.resolve_fbp(fbp)
+    seconds = []
+    for na in (16, 48):
+        sino = np.random.default_rng(1).normal(size=(na, 2, shape[1])).astype(np.float32)
+        theta = np.linspace(0, 180, na, endpoint=False)
+        t = time.perf_counter()
+        tomography.back_projection(sino, theta, 1e-6, fft=FFT.for_module(np, fft_workers), method=method)
+        seconds.append((time.perf_counter() - t) / 2)
+    per_angle = max(0.0, (seconds[1] - seconds[0]) / 32)
+    return Speeds(fft_s, max(0.0, seconds[0] - 16 * per_angle), per_angle, method)
+
+
+def iteration_fft_times(variant: str, field_upsample: float = 1) -> float:
+    """An iteration's cost in FFTs of the padded detector grid: measured for the variants of
+    :data:`ITERATION_FFT_TIMES`, other field grids scaled from the 2x grid's by their pixels."""
+    if variant in ITERATION_FFT_TIMES:
+        return ITERATION_FFT_TIMES[variant]
+    return ITERATION_FFT_TIMES["field on 2x grid"] * field_upsample**2 / 4
+
+
+def retrieval_peak_mb(shape: tuple[int, int], field_upsample: float = 1, positions: int = 1, pad: int = 17) -> float:
+    ny, nx = padded_grid(shape, pad)
+    pixels = ny * nx
+    diffusers = min(8, positions) * pixels * field_upsample**2 * 8  # complex64 transmission each
+    extra = RETRIEVAL_BYTES_PER_FIELD_PIXEL * (field_upsample**2 - 1) * pixels
+    return RETRIEVAL_BASE_MB + (RETRIEVAL_BYTES_PER_PIXEL * pixels + extra + diffusers) / 1e6
+
+
+def tomo_peak_mb(n_angles: int, rows: int, nx: int, fbp: str = "backproject") -> float:
+    sinogram = n_angles * rows * nx
+    per_element, per_voxel = TOMO_BYTES[fbp]
+    return TOMO_BASE_MB + (per_element * sinogram + per_voxel * rows * nx * nx) / 1e6
+
+
+def fsc_peak_mb(ny: int, nx: int) -> float:
+    return FSC_BYTES_PER_VOXEL * ny * nx * nx / 1e6
+
+
+def estimate_scan(
+    shape: tuple[int, int],
+    n_angles: int,
+    n_positions: int,
+    *,
+    workers: int = 1,
+    iterations: int = DEFAULT_ITERATIONS,
+    field_upsample: float = 1,
+    upstream_or_l1_zero: bool = False,
+    speeds: Speeds,
+) -> list[StageEstimate]:
+    """Peak memory per worker and wall time of retrieval, tomography and FSC on ``workers``
+    single-threaded workers (time divided evenly: the tasks outnumber the workers)."""
+    from pwf_dask.stores.scan_io import row_block
+
+    ny, nx = shape
+    variant = "l1=0" if upstream_or_l1_zero else "l1>0"
+    if field_upsample > 1:
+        variant = f"field on {field_upsample:g}x grid"
+    fft_times = iteration_fft_times(variant, field_upsample)
+    per_projection = iterations * fft_times * speeds.fft_s
+    projections = n_angles * n_positions
+    rb = row_block(ny, nx)
+    blocks = n_positions * -(-ny // rb)
+    fbp = 2 * speeds.slice_s(n_angles) * ny * n_positions  # phase and attenuation
+    base = WORKER_BASE_MB
+    return [
+        StageEstimate(
+            "retrieve",
+            projections,
+            base + retrieval_peak_mb(shape, field_upsample, n_positions),
+            projections * per_projection / workers,
+            f"{iterations} iterations x {fft_times:g} FFT-times ({variant}) x {speeds.fft_s * 1e3:.2f} ms per FFT",
+        ),
+        StageEstimate(
+            "tomo",
+            blocks,
+            base + tomo_peak_mb(n_angles, rb, nx, speeds.fbp),
+            fbp / workers,
+            f"{blocks} row blocks of {rb} rows; {speeds.fbp} FBP {speeds.slice_s(n_angles):.2f} s per slice",
+        ),
+        _fsc_stage(ny, nx, n_angles, n_positions, speeds),
+    ]
+
+
+def _fsc_stage(ny: int, nx: int, n_angles: int, n_positions: int, speeds: Speeds) -> StageEstimate:
+    """K >= 2: two stored tomograms at a time; K = 1: the even and odd half-scans are
+    reconstructed whole, in the driver, before their FSC."""
+    voxels = ny * nx * nx
+    ffts = 2 * speeds.fft_s * voxels * np.log2(voxels) / (nx * nx * np.log2(nx * nx)) / 2  # two real 3-D FFTs
+    if n_positions >= 2:
+        pairs = min(5, n_positions * (n_positions - 1) // 2)
+        return StageEstimate(
+            "fsc", pairs, WORKER_BASE_MB + fsc_peak_mb(ny, nx), pairs * ffts, "in the driver: two tomograms at a time"
+        )
+    fbp = 2 * 2 * speeds.slice_s(n_angles // 2) * ny  # both halves, phase and attenuation
+    peak = tomo_peak_mb(n_angles // 2, ny, nx, speeds.fbp) + fsc_peak_mb(ny, nx)
+    return StageEstimate("fsc", 1, WORKER_BASE_MB + peak, fbp + ffts, "in the driver: even/odd half-scans, whole")
+
+
+def format_estimate(stages: list[StageEstimate], workers: int, memory_mb: float | None = None) -> list[str]:
+    """The lines ``pwf-dask estimate`` prints: a table, and a warning for a stage that cannot fit."""
+    from pwf_dask.progress import format_seconds
+
+    lines = [f"{'stage':<10}{'tasks':>8}{'peak memory per worker':>26}{f'time on {workers} worker(s)':>24}"]
+    for s in stages:
+        lines.append(f"{s.stage:<10}{s.tasks:>8}{s.peak_mb_per_worker / 1e3:>23.2f} GB{format_seconds(s.seconds):>24}")
+    lines += [f"  {s.stage}: {s.note}" for s in stages if s.note]
+    if memory_mb:
+        for s in stages:
+            if s.peak_mb_per_worker > memory_mb:
+                lines.append(
+                    f"  warning: {s.stage} needs {s.peak_mb_per_worker / 1e3:.1f} GB per worker; "
+                    f"this machine has {memory_mb / 1e3:.1f} GB"
+                )
+    return lines
+
+
+def machine_memory_mb() -> float | None:
+    try:
+        return os_memory_bytes() / 1e6
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def os_memory_bytes() -> int:
+    import os
+
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def estimate_for_scan(
+    scan_path, *, workers: int = 1, iterations: int = DEFAULT_ITERATIONS, field_upsample: float = 1, fbp: str = "auto"
+) -> tuple[list[StageEstimate], dict]:
+    """:func:`estimate_scan` for a scan store (its metadata only; nothing is read but the
+    coordinates), with the speeds measured here. Returns the stages and the scan's sizes."""
+    from pwf_dask.stores.scan_io import open_scan
+
+    _, info = open_scan(scan_path, check_values=False)
+    l1_zero = info.sample_diffuser_distance_m == 0
+    speeds = measure_speeds(info.shape, fbp=fbp)
+    stages = estimate_scan(
+        info.shape,
+        info.angles_deg.size,
+        info.n_positions,
+        workers=workers,
+        iterations=iterations,
+        field_upsample=field_upsample,
+        upstream_or_l1_zero=l1_zero,
+        speeds=speeds,
+    )
+    sizes = {"positions": info.n_positions, "angles": int(info.angles_deg.size), "shape": info.shape}
+    return stages, sizes

@@ -1,0 +1,978 @@
+"""The scan pipeline on Dask: retrieval per chain of angles, tomography per row block, FSC (CONTRACT §2).
+
+Every stage reads and writes the reconstruction store (:mod:`pwf_dask.stores.scan_io`) and is
+resumable: retrieval recomputes only projections whose ``iterations`` is still -1 (written
+last for each projection, after its phase and attenuation chunks); tomography recomputes
+only row blocks whose ``tomo_done`` flag is 0. A killed run loses at most the projections
+and row blocks in flight.
+Dask appears here and in :mod:`pwf_dask.pipeline.cluster` only; the numerics stay pure functions.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import threading
+import time
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from pwf_dask import __version__, calibration
+from pwf_dask.backend import resolve_device, to_numpy
+from pwf_dask.baselines.tracking import MIN_POSITIONS
+from pwf_dask.physics.detector import DEFAULT_OUTLIER_SIGMA, check_threshold, repair_outliers
+from pwf_dask.physics.optics import check_diffuser_upstream, wavelength_m
+from pwf_dask.pipeline.cluster import Runner, check_scheduler, worker_fft_threads
+from pwf_dask.pwf.solver import DEFAULT_ALPHA, PAPER_ALPHA, PAPER_TOL
+from pwf_dask.retrieval import (
+    METHODS,
+    check_diffuser_drift,
+    check_field_upsample,
+    check_solver_options,
+    parse_alpha,
+)
+from pwf_dask.stores import integrity, scan_io
+from pwf_dask.tomo import fsc, tomography
+
+log = logging.getLogger(__name__)
+
+#: methods that combine the K diffuser positions of one angle into one projection
+MULTI_IMAGE = ("lcs", "umpa", "mist")
+
+
+def _read_corrected(g, name, index, flat, dark, corrected):
+    frame = integrity.read_checked(integrity.store_root(g), g[name], name, index)
+    return scan_io.correct(frame, flat, dark, corrected)
+
+
+def _read_reference(g, p, flat, dark, corrected, outlier_sigma):
+    """Position p's corrected reference with its spikes repaired (:mod:`pwf_dask.physics.detector`):
+    the coherence fit and the diffuser estimate read every pixel."""
+    return repair_outliers(_read_corrected(g, "reference", p, flat, dark, corrected), outlier_sigma)[0]
+
+
+def _scan_frames(scan_path):
+    import zarr
+
+    g = zarr.open_group(str(scan_path), mode="r")
+    corrected = bool(g.attrs.get("flat_dark_corrected", False))
+    flat, dark = (integrity.read_checked(str(scan_path), g[n], n) if n in g else None for n in ("flat", "dark"))
+    return g, flat, dark, corrected
+
+
+#: diffuser estimates held by this process, one per (scan, store, position, options): read
+#: from the store once per worker, not once per task
+_DIFFUSERS: dict = {}
+_DIFFUSERS_LOCK = threading.Lock()
+_DIFFUSER_OPTIONS = (
+    "pad",
+    "diffuser_model",
+    "diffuser_material",
+    "diffuser_beta_over_delta",
+    "diffuser_refine_iter",
+    "phase_screen_iter",
+    "diffuser_upstream_m",
+)
+#: the reconstruction store's array of the fitted diffusers (position, y, x, re/im), float32
+DIFFUSER_ARRAY = "diffuser"
+
+
+def _fit_diffuser(reference, attrs, coherence, options, fft_workers):
+    """The diffuser t_r of one position, fitted to its repaired reference (Methods, Diffuser
+    transmission function; :func:`pwf_dask.retrieval.estimate_diffuser`)."""
+    from pwf_dask import retrieval
+
+    chosen = {k: options[k] for k in _DIFFUSER_OPTIONS if k in options}
+    return retrieval.estimate_diffuser(
+        repair_outliers(reference, options.get("outlier_sigma", DEFAULT_OUTLIER_SIGMA))[0],  # the fit reads every pixel
+        energy_eV=float(attrs["energy_eV"]),
+        pixel_size_m=float(attrs["pixel_size_m"]),
+        diffuser_detector_distance_m=float(attrs["diffuser_detector_distance_m"]),
+        coherence_length_x_m=coherence[0],
+        coherence_length_y_m=coherence[1],
+        fft_workers=fft_workers,
+        **chosen,
+    )
+
+
+def _diffuser_task(p, *, scan_path, options, device, fft_workers, coherence):
+    """Stage task: position p's diffuser, fitted once for the whole scan; returned to the
+    client (complex64), which stores it for every projection task of the position."""
+    g, flat, dark, corrected = _scan_frames(scan_path)
+    reference = _read_corrected(g, "reference", p, flat, dark, corrected)
+    xp = resolve_device(device)
+    t0 = time.perf_counter()
+    t = _fit_diffuser(xp.asarray(reference), g.attrs, coherence[p], options, worker_fft_threads(fft_workers))
+    return p, to_numpy(t).astype(np.complex64), time.perf_counter() - t0
+
+
+def _stored_diffuser(recon_path: str, p: int):
+    """Position p's diffuser as stored by :func:`_fit_diffusers`, or None where it is not
+    (a store made before, a damaged chunk: the caller fits it)."""
+    import zarr
+
+    if not Path(recon_path, DIFFUSER_ARRAY).exists():  # also before the store is made (alpha probe)
+        return None
+    g = zarr.open_group(recon_path, mode="r", use_consolidated=False)
+    try:
+        pair = integrity.read_checked(recon_path, g[DIFFUSER_ARRAY], DIFFUSER_ARRAY, p)
+    except integrity.DamagedChunk:
+        return None
+    # positions' grids differ with their coherence (the padding): NaN beyond this one's
+    valid = np.isfinite(pair[..., 0])
+    ny, nx = int(valid.any(axis=1).sum()), int(valid.any(axis=0).sum())
+    t = np.empty((ny, nx), dtype=np.complex64)
+    t.real, t.imag = pair[:ny, :nx, 0], pair[:ny, :nx, 1]
+    return t
+
+
+def _diffuser_grid_shape(scan_path, coherence, options) -> tuple[int, int]:
+    """The largest computational grid of the scan's positions (the stored array's)."""
+    from pwf_dask.retrieval import diffuser_grid
+
+    g = _scan_frames(scan_path)[0]
+    kw = {k: options[k] for k in ("pad", "diffuser_upstream_m") if k in options}
+    shapes = [
+        diffuser_grid(
+            g["reference"].shape[1:],
+            energy_eV=float(g.attrs["energy_eV"]),
+            pixel_size_m=float(g.attrs["pixel_size_m"]),
+            diffuser_detector_distance_m=float(g.attrs["diffuser_detector_distance_m"]),
+            coherence_length_x_m=cx,
+            coherence_length_y_m=cy,
+            **kw,
+        )[1]
+        for cx, cy in coherence
+    ]
+    return max(s[0] for s in shapes), max(s[1] for s in shapes)
+
+
+def _fit_diffusers(runner, recon_path: str, positions: list[int], **task) -> dict:
+    """Fit the diffusers of ``positions`` not yet in the store, one task per position, and
+    store them (issue #31: once per position in a scan, whatever the number of workers)."""
+    import zarr
+
+    todo = [p for p in positions if _stored_diffuser(recon_path, p) is None]
+    if not todo:
+        return {}
+    fitted = runner.map(_diffuser_task, todo, label="diffuser", unit="positions", **task)
+    g = zarr.open_group(recon_path, mode="r+", use_consolidated=False)
+    shape = _diffuser_grid_shape(task["scan_path"], task["coherence"], task["options"])
+    if DIFFUSER_ARRAY not in g or g[DIFFUSER_ARRAY].shape[1:3] != shape:
+        n = g["phase"].shape[0]
+        dims = ("position", "diffuser_y", "diffuser_x", "re_im")
+        scan_io._create(g, DIFFUSER_ARRAY, (n, *shape, 2), (1, *shape, 2), dims, "float32", np.nan)
+    for p, t, _ in fitted:
+        pair = np.full((*shape, 2), np.nan, dtype=np.float32)
+        pair[: t.shape[0], : t.shape[1], 0], pair[: t.shape[0], : t.shape[1], 1] = t.real, t.imag
+        g[DIFFUSER_ARRAY][p] = pair
+    return {p: seconds for p, _, seconds in fitted}
+
+
+def _position_diffuser(scan_path, recon_path, p, reference, attrs, coherence, options, device, fft_workers):
+    """Position p's diffuser for a projection task: the stored fit (one read per worker), or
+    a fit of this worker's own where the store has none."""
+    chosen = {k: options[k] for k in _DIFFUSER_OPTIONS if k in options}
+    repair = options.get("outlier_sigma", DEFAULT_OUTLIER_SIGMA)
+    key = (str(scan_path), str(recon_path), p, tuple(coherence), device, repair, tuple(sorted(chosen.items())))
+    with _DIFFUSERS_LOCK:  # threads of one worker wait for the one read or fit
+        if key not in _DIFFUSERS:
+            if len(_DIFFUSERS) >= 8:
+                _DIFFUSERS.pop(next(iter(_DIFFUSERS)))
+            stored = None if recon_path is None else _stored_diffuser(str(recon_path), p)
+            if stored is None:
+                t = _fit_diffuser(reference, attrs, coherence, options, fft_workers)
+            else:
+                t = resolve_device(device).asarray(stored)
+            _DIFFUSERS[key] = t
+        return _DIFFUSERS[key]
+
+
+def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers, coherence, start_from=None):
+    """One projection: read, correct, retrieve, write its chunks, then its diagnostics.
+
+    ``start_from`` (position, angle): PWF starts from that projection's stored result
+    (:func:`angle_chains`); None: from zero, as the paper does.
+    """
+    import zarr
+
+    p, a = item
+    t0 = time.perf_counter()
+    res = _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, coherence, start_from)
+    out = zarr.open_group(str(recon_path), mode="r+", use_consolidated=False)
+    out["phase"][p, a] = to_numpy(res.phase).astype(np.float32)
+    out["attenuation"][p, a] = to_numpy(res.attenuation).astype(np.float32)
+    out["converged"][p, a] = bool(res.converged)
+    out["residual_rmse"][p, a] = np.float32(res.residual_rmse)
+    if "outlier_pixels" in out:  # stores made before the detector test lack it
+        out["outlier_pixels"][p, a] = np.int32(res.parameters.get("outlier_pixels", 0))
+    if a == 0 and res.residual is not None and "preview_residual" in out:
+        out["preview_residual"][p] = to_numpy(res.residual).astype(np.float32)
+    if "diffuser_drift_px" in res.parameters and "diffuser_drift_y_px" in out:
+        out["diffuser_drift_y_px"][p, a], out["diffuser_drift_x_px"][p, a] = res.parameters["diffuser_drift_px"]
+    seconds = time.perf_counter() - t0
+    if "retrieval_seconds" in out:  # stores made before timings were kept lack it
+        out["retrieval_seconds"][p, a] = np.float32(seconds)
+    out["iterations"][p, a] = np.int32(res.iterations)  # last: marks the projection done
+    return p, a, res.iterations, res.converged, res.residual_rmse, seconds, _peak_rss_mb()
+
+
+def _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, coherence, start_from=None):
+    """Read and correct one projection and its reference, and retrieve it."""
+    import zarr
+
+    from pwf_dask.retrieval import retrieve_projection
+
+    p, a = item
+    g, flat, dark, corrected = _scan_frames(scan_path)
+    if options.get("method") in MULTI_IMAGE:  # all K positions at this angle, one result
+        npos = g["projections"].shape[0]
+        sample = np.stack([_read_corrected(g, "projections", (k, a), flat, dark, corrected) for k in range(npos)])
+        reference = np.stack([_read_corrected(g, "reference", k, flat, dark, corrected) for k in range(npos)])
+    else:
+        sample = _read_corrected(g, "projections", (p, a), flat, dark, corrected)
+        # as read: retrieve_projection repairs its spikes, and the diffuser fit (once per
+        # position, :func:`_fit_diffusers`) repaired its own copy
+        reference = _read_corrected(g, "reference", p, flat, dark, corrected)
+    xp = resolve_device(device)
+    extra = {}
+    if start_from is not None:
+        done = zarr.open_group(str(recon_path), mode="r", use_consolidated=False)
+        psi = -done["attenuation"][start_from].astype(np.complex64)
+        psi += 1j * done["phase"][start_from]
+        extra["initial"] = xp.asarray(psi)
+    if options.get("method", "pwf") == "pwf":
+        extra["diffuser"] = _position_diffuser(
+            scan_path,
+            recon_path,
+            p,
+            xp.asarray(reference),
+            g.attrs,
+            coherence[p],
+            options,
+            device,
+            worker_fft_threads(fft_workers),
+        )
+    return retrieve_projection(
+        xp.asarray(sample),
+        xp.asarray(reference),
+        energy_eV=float(g.attrs["energy_eV"]),
+        pixel_size_m=float(g.attrs["pixel_size_m"]),
+        sample_diffuser_distance_m=float(g.attrs["sample_diffuser_distance_m"]),
+        diffuser_detector_distance_m=float(g.attrs["diffuser_detector_distance_m"]),
+        coherence_length_x_m=coherence[p][0],
+        coherence_length_y_m=coherence[p][1],
+        fft_workers=worker_fft_threads(fft_workers),
+        **options,
+        **extra,
+    )
+
+
+def choose_scan_alpha(scan_path, recon_path, options: dict, device: str, coherence) -> tuple[complex, str]:
+    """alpha="discrepancy" for a scan: Im(alpha) by the discrepancy principle
+    (:func:`pwf_dask.pwf.solver.discrepancy_alpha`) on one projection, position 0 at the middle
+    angle, used for every projection. Returns (alpha, the rungs tried as JSON). A store that
+    already chose keeps its choice, so a resumed run does not probe again."""
+    import zarr
+
+    if Path(recon_path).exists():
+        try:
+            attrs = zarr.open_group(str(recon_path), mode="r", use_consolidated=False).attrs
+        except Exception:  # not a store: create_reconstruction says so in one line
+            attrs = {}
+        if attrs.get("alpha_rule") == "discrepancy":
+            return complex(str(attrs["alpha"]).replace(" ", "")), str(attrs["alpha_trials"])
+    n_angles = zarr.open_group(str(scan_path), mode="r", use_consolidated=False)["projections"].shape[1]
+    item = (0, n_angles // 2)
+    res = _retrieve_item(item, scan_path, recon_path, {**options, "alpha": "discrepancy"}, device, None, coherence)
+    _say(f"alpha: {res.parameters['alpha']} by the discrepancy principle on projection {item}")
+    return complex(res.parameters["alpha"]), json.dumps(res.parameters["alpha_trials"])
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this process (MB): the worker's, on distributed."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+#: projections per warm-start chain of the retrieval stage (``angle_chain``; docs/user-guide.md, Warm
+#: starts along the angles)
+DEFAULT_ANGLE_CHAIN = 8
+
+
+def angle_chains(angles_deg, n_positions: int, chain_length: int) -> list[list[tuple[int, int]]]:
+    """The retrieval stage's tasks: chains of (position, angle index), each in angle order.
+
+    Within a chain every projection after the first starts PWF from the one before (its
+    stored phase and attenuation), two angular steps away: the even and odd angles (in angle
+    order) and the diffuser positions stay in separate chains, so the halves and positions
+    that the FSC compares never share a start. The first projection of a chain starts from
+    zero; ``chain_length`` 1 is every projection from zero, the paper's procedure.
+    """
+    if int(chain_length) < 1:
+        raise ValueError(f"angle_chain is a number of projections >= 1, got {chain_length}")
+    order = np.argsort(np.asarray(angles_deg), kind="stable")
+    chains = []
+    for p in range(n_positions):
+        for half in (order[0::2], order[1::2]):
+            for s in range(0, len(half), int(chain_length)):
+                chains.append([(p, int(a)) for a in half[s : s + int(chain_length)]])
+    return chains
+
+
+def _retrieve_chain(chain, **task):
+    """The projections of one chain still missing, in order, each started from the stored
+    result of the one before it in the chain: a resumed chain starts where a killed one
+    stopped, from the same values."""
+    import zarr
+
+    done = zarr.open_group(task["recon_path"], mode="r", use_consolidated=False)["iterations"]
+    results = []
+    for i, item in enumerate(chain):
+        if int(done[item]) < 0:
+            results.append(_retrieve_task(item, start_from=chain[i - 1] if i else None, **task))
+    return results
+
+
+def retrieve_scan(
+    scan_path,
+    recon_path,
+    *,
+    scheduler: str = "threads",
+    device: str = "cpu",
+    method: str = "pwf",
+    max_iter: int = 2000,
+    tol: float = PAPER_TOL,
+    gamma: float = 1.0,
+    alpha=DEFAULT_ALPHA,
+    step: float = 1.0,
+    precision: str = "single",
+    outlier_sigma: float | None = DEFAULT_OUTLIER_SIGMA,
+    angle_chain: int = DEFAULT_ANGLE_CHAIN,
+    runner: Runner | None = None,
+    **options,
+) -> dict:
+    """Retrieval stage: every missing (position, angle) projection, one task per chain of
+    ``angle_chain`` projections (PWF; :func:`angle_chains`), one per projection otherwise.
+
+    ``outlier_sigma`` is the detector-defect threshold of :func:`retrieve_projection`; the
+    references are repaired with it before the coherence fit and the diffuser estimate.
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
+    check_scheduler(scheduler)
+    # tasks may run in other working directories (distributed workers)
+    scan_path, recon_path = str(Path(scan_path).resolve()), str(Path(recon_path).resolve())
+    if "://" not in scheduler:  # tasks run on this host: fail early on --device gpu without CuPy
+        resolve_device(device)
+    check_threshold(outlier_sigma)
+    check_diffuser_drift(options.get("diffuser_drift", "auto"))
+    angle_chains((), 1, angle_chain)  # a bad length fails here, before anything is written
+    # only PWF iterates from a start, and a start the user chose is kept for every projection
+    angle_chain = int(angle_chain) if method == "pwf" and "initial" not in options else 1
+    alpha_c = parse_alpha(alpha)
+    check_solver_options(max_iter, tol, gamma, step, options.get("phase_scale", 1.0))
+    if "field_upsample" in options:
+        options["field_upsample"] = check_field_upsample(options["field_upsample"])
+    ds, info = scan_io.open_scan(scan_path)
+    if method == "pwf":
+        # the scan's recorded geometry unless the caller gave the distance
+        options["diffuser_upstream_m"] = check_diffuser_upstream(
+            options.get("diffuser_upstream_m", info.diffuser_upstream_m), info.sample_diffuser_distance_m
+        )
+    if info.n_positions < MIN_POSITIONS.get(method, 1):
+        raise ValueError(
+            f"method {method} needs K >= {MIN_POSITIONS[method]} diffuser positions; the scan has {info.n_positions}"
+        )
+    g, flat, dark, corrected = _scan_frames(scan_path)
+    coherence, fits, fit_seconds = [], [], []
+    for p in range(info.n_positions if method == "pwf" else 0):
+        cx, cy = info.coherence_length_x_m, info.coherence_length_y_m
+        if cx is None or cy is None:
+            ref = _read_reference(g, p, flat, dark, corrected, outlier_sigma)
+            started = time.perf_counter()
+            fit = calibration.fit_coherence_lengths(
+                ref,
+                info.pixel_size_m,
+                energy_eV=info.energy_eV,
+                diffuser_detector_distance_m=info.diffuser_detector_distance_m + options["diffuser_upstream_m"],
+                diffuser_material=options.get("diffuser_material", "silicon carbide"),
+                method=options.get("coherence_method", "template"),
+            )
+            fits.append(fit)
+            fit_seconds.append(time.perf_counter() - started)
+            cx = fit.x_m if cx is None else cx
+            cy = fit.y_m if cy is None else cy
+        coherence.append((float(cx), float(cy)))
+    if fits:
+        # the tasks are given the lengths: they must know whether the pixel's blur is in them
+        options["coherence_includes_pixel_blur"] = fits[0].includes_pixel_blur
+    if method != "pwf":
+        coherence = [(float("nan"), float("nan"))] * info.n_positions
+    alpha_rule, alpha_trials = "given", "n/a"
+    if alpha_c == "discrepancy" and method == "pwf":
+        probe = dict(method=method, max_iter=max_iter, tol=tol, gamma=gamma, step=step, precision=precision)
+        probe.update(outlier_sigma=outlier_sigma, **options)
+        alpha_c, alpha_trials = choose_scan_alpha(scan_path, recon_path, probe, device, coherence)
+        alpha_rule = "discrepancy"
+    elif alpha_c == "discrepancy":  # the speckle-tracking baselines have no alpha
+        alpha_c, alpha_rule = PAPER_ALPHA, "n/a"
+    if method in MULTI_IMAGE:
+        from dataclasses import replace
+
+        info = replace(info, n_positions=1)  # one reconstruction from all K positions
+    params = {
+        "method": method,
+        "gamma": float(gamma),
+        "alpha": str(alpha_c).strip("()"),
+        "alpha_rule": alpha_rule,
+        "alpha_trials": alpha_trials,
+        "step": float(step),
+        "tol": float(tol),
+        "max_iter": int(max_iter),
+        "precision": precision,
+        "outlier_sigma": float(outlier_sigma or 0),
+        "device": device,
+        # "n/a": the speckle-tracking baselines use no coherence model
+        "coherence_length_x_m": float(np.mean([c[0] for c in coherence])) if method == "pwf" else "n/a",
+        "coherence_length_y_m": float(np.mean([c[1] for c in coherence])) if method == "pwf" else "n/a",
+        "coherence_lengths_per_position_m": json.dumps(coherence) if method == "pwf" else "n/a",
+        "coherence_calibrated": info.coherence_length_x_m is None or info.coherence_length_y_m is None,
+        "coherence_fits_per_position": json.dumps(
+            [
+                {"method": f.method, "template": f.template, "grain_radius_m": f.grain_radius_m, "seconds": round(t, 3)}
+                for f, t in zip(fits, fit_seconds)
+            ]
+        )
+        if fits
+        else "n/a",
+        "pwf_dask_version": __version__,
+        "scan_fingerprint": integrity.scan_fingerprint(g).encode(),
+        "angle_chain": angle_chain,
+        "diffuser_model": options.get("diffuser_model", "single-material") if method == "pwf" else "n/a",
+        **{
+            k: v
+            for k, v in options.items()
+            if isinstance(v, (int, float, str, bool)) and (method == "mist" or not k.startswith("sample_"))
+        },
+    }
+    if method == "mist":  # the one material MIST assumes, as used
+        from pwf_dask.retrieval import mist_delta_over_beta
+
+        params["sample_delta_over_beta"] = mist_delta_over_beta(
+            options.get("sample_material", "cellulose"), options.get("sample_delta_over_beta"), info.energy_eV
+        )
+    opts = dict(method=method, max_iter=max_iter, tol=tol, gamma=gamma, alpha=alpha_c, step=step)
+    opts.update(precision=precision, outlier_sigma=outlier_sigma, **options)
+    own = runner is None
+    runner = runner or Runner(scheduler)  # a bad scheduler fails here, before anything is written
+    try:
+        return _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, coherence, angle_chain)
+    finally:
+        if own:
+            runner.close()
+
+
+def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, coherence, angle_chain) -> dict:
+    """Create or reopen the store, verify what it holds, and compute the missing projections."""
+    import zarr
+
+    created = not Path(recon_path).exists()
+    grp = scan_io.create_reconstruction(recon_path, info, params)
+    done = _verified_done(runner, recon_path, grp)
+    chains = [c for c in angle_chains(grp["angle"][...], done.shape[0], angle_chain) if any(done[i] < 0 for i in c)]
+    missing = int((done < 0).sum())
+    _say(f"retrieve: {missing} of {done.size} projections to compute ({done.size - missing} already done)")
+    t0 = time.perf_counter()
+    try:
+        if opts.get("method", "pwf") == "pwf":
+            positions = sorted({p for chain in chains for p, _ in chain})
+            fit_s = _fit_diffusers(
+                runner,
+                recon_path,
+                positions,
+                scan_path=scan_path,
+                options=opts,
+                device=device,
+                fft_workers=runner.fft_workers(),
+                coherence=coherence,
+            )
+            if fit_s:
+                grp.attrs["diffuser_fit_s"] = json.dumps({str(p): round(t, 3) for p, t in fit_s.items()})
+        chained = runner.map(
+            _retrieve_chain,
+            chains,
+            label="retrieve",
+            unit="projections",
+            count=partial(_count_done, recon_path, "iterations", 0),
+            total=done.size,
+            scan_path=scan_path,
+            recon_path=recon_path,
+            options=opts,
+            device=device,
+            fft_workers=runner.fft_workers(),
+            coherence=coherence,
+        )
+    except Exception:
+        if created and _count_done(recon_path, "iterations", 0) == 0:
+            # a store this call made and nothing saved in it would only block the corrected re-run
+            shutil.rmtree(recon_path, ignore_errors=True)
+        raise
+    results = [r for chain in chained for r in chain]
+    wall = time.perf_counter() - t0
+    grp = zarr.open_group(recon_path, mode="r+", use_consolidated=False)
+    if results:
+        a = grp.attrs
+        a["retrieval_wall_s"] = wall
+        a["retrieval_task_s_mean"] = float(np.mean([r[5] for r in results]))
+        # of any one worker process, over every run that filled the store
+        a["retrieval_peak_rss_mb"] = float(max([r[6] for r in results] + [a.get("retrieval_peak_rss_mb", 0.0)]))
+        # a store filled over several (resumed) runs: the totals of all of them
+        a["retrieval_wall_s_total"] = float(a.get("retrieval_wall_s_total", 0.0)) + wall
+        a["retrieval_task_s_total"] = float(a.get("retrieval_task_s_total", 0.0)) + float(sum(r[5] for r in results))
+        a["retrieval_tasks_timed"] = int(a.get("retrieval_tasks_timed", 0)) + len(results)
+    scan_io.consolidate(recon_path)
+    return {"computed": len(results), "wall_s": wall, "coherence": coherence, "tasks": results}
+
+
+def _say(message: str) -> None:
+    log.info(message)
+
+
+def _report_damage(stage: str, damaged: list, what: str) -> None:
+    """One line per damaged chunk (ten at most): a repair is never silent."""
+    for d in damaged[:10]:
+        _say(f"{stage}: {d}: {what}")
+    if len(damaged) > 10:
+        _say(f"{stage}: ... and {len(damaged) - 10} more damaged chunks: {what}")
+
+
+def _verified_done(runner, recon_path: str, grp) -> np.ndarray:
+    """``iterations`` as trusted: a projection marked done counts only if its chunks are all
+    there and decode (checksums; :mod:`pwf_dask.stores.integrity`); any other is named, marked not
+    done and recomputed. The decode pass reads what is stored once (on a resume)."""
+    done, damaged = integrity.read_bookkeeping(recon_path, grp, "iterations")
+    _report_damage("retrieve", damaged, "its projection is recomputed")
+    for (p, a), lost in integrity.missing_projection_chunks(recon_path, grp, done).items():
+        name, index = lost[0]
+        _say(f"retrieve: {recon_path}: {name} chunk {index} of projection ({p}, {a}) is missing: recomputed")
+        integrity.reset_projection(recon_path, grp, p, a)
+        done[p, a] = -1
+    stored = [integrity.projection_chunks(grp, int(p), int(a)) for p, a in zip(*np.nonzero(done >= 0))]
+    for fault in _decode_all(runner, recon_path, "projection", stored):
+        p, a = fault.index[:2]
+        _say(f"retrieve: {fault} (projection ({p}, {a})): recomputed")
+        integrity.reset_projection(recon_path, grp, p, a)
+        done[p, a] = -1
+    return done
+
+
+def _decode_task(chunk_lists, *, recon_path):
+    """The first fault of each list of (array, chunk index), if any."""
+    import zarr
+
+    g = zarr.open_group(recon_path, mode="r", use_consolidated=False)
+    faults = []
+    for chunks in chunk_lists:
+        for name, index in chunks:
+            try:
+                integrity.read_chunk(recon_path, g[name], name, index)
+            except integrity.DamagedChunk as exc:
+                faults.append(exc)
+                break
+    return faults
+
+
+def _decode_all(runner, recon_path: str, what: str, chunk_lists: list) -> list:
+    """Decode every chunk of ``chunk_lists`` (one list per projection or row block) on the
+    scheduler, in batches of 16 lists; the first fault of each list that has one."""
+    if not chunk_lists:
+        return []
+    batches = [chunk_lists[i : i + 16] for i in range(0, len(chunk_lists), 16)]
+    found = runner.map(_decode_task, batches, label="verify", unit=f"{what} batches", recon_path=recon_path)
+    return [f for batch in found for f in batch]
+
+
+def _count_done(recon_path: str, name: str, done_from: int) -> int:
+    """Entries of the store's bookkeeping array ``name`` at or above ``done_from`` (progress)."""
+    import zarr
+
+    group = zarr.open_group(recon_path, mode="r", use_consolidated=False)
+    return int((group[name][...] >= done_from).sum())
+
+
+# --- tomography -------------------------------------------------------------------------
+
+
+def _read_sinogram(g, recon_path, name, p, rows, b) -> tuple[np.ndarray | None, list]:
+    """Row block ``b`` of position p's sinogram; or None and the damaged chunks (named, removed,
+    their projections marked not done): a chunk is never read as its fill value or garbage."""
+    arr = g[name]
+    idx = [(p, a, b, 0) for a in range(arr.shape[1])]
+    damaged = [
+        integrity.DamagedChunk(recon_path, name, i, "missing")
+        for i in idx
+        if not integrity.chunk_path(recon_path, name, i).exists()
+    ]
+    if not damaged:
+        try:
+            return arr[p, :, rows, :], []
+        except Exception:
+            for i in idx:
+                try:
+                    integrity.read_chunk(recon_path, arr, name, i)
+                except integrity.DamagedChunk as exc:
+                    damaged.append(exc)
+    for d in damaged:
+        integrity.reset_projection(recon_path, g, d.index[0], d.index[1])
+    return None, damaged
+
+
+def _tomo_task(item, *, recon_path, center_m, device, fft_workers, fbp):
+    """FBP of one (position, row block); returns the damaged chunks it found (then nothing is
+    written and the block stays not done)."""
+    import zarr
+
+    from pwf_dask.backend import FFT
+
+    p, b = item
+    g = zarr.open_group(str(recon_path), mode="r+", use_consolidated=False)
+    rb = g["delta"].chunks[1]
+    ny = g["delta"].shape[1]
+    rows = slice(b * rb, min(ny, (b + 1) * rb))
+    xp = resolve_device(device)
+    fft = FFT.for_module(xp, worker_fft_threads(fft_workers))
+    angles = g["angle"][...]
+    pix = float(g.attrs["pixel_size_m"])
+    wl = wavelength_m(float(g.attrs["energy_eV"]))
+    sinograms = {}
+    for name in ("phase", "attenuation"):  # both checked before anything is written
+        sinograms[name], damaged = _read_sinogram(g, str(recon_path), name, p, rows, b)
+        if damaged:
+            return [str(d) for d in damaged]
+    # one volume at a time: delta is written before beta's FBP (the task's peak, issue #29)
+    for name, out, sign in (("phase", "delta", -1.0), ("attenuation", "beta", 1.0)):
+        sino = xp.asarray(sinograms.pop(name))
+        slices = to_numpy(tomography.back_projection(sino, angles, pix, center_m, fft=fft, method=fbp))
+        del sino
+        slices *= np.float32(sign * wl / (2 * np.pi))  # tomography.to_refractive_index, in place
+        g[out][p, rows] = tomography.remove_background(slices).astype(np.float32, copy=False)
+        del slices
+    g["tomo_done"][p, b] = 1
+    return []
+
+
+class RetrievalDamaged(scan_io.ScanError):
+    """Tomography found retrieved chunks missing or damaged; they are marked not done."""
+
+
+def rotation_center(recon_path) -> float:
+    """Rotation axis from the -phase sinograms of the middle row block of position 0: from a
+    180-degree pair when the scan has one, else from the centre-of-mass sinusoid."""
+    import zarr
+
+    g = zarr.open_group(str(recon_path), mode="r", use_consolidated=False)
+    ny = g["phase"].shape[2]
+    rb = g["phase"].chunks[2]
+    mid = (ny // 2) // rb * rb
+    sino = -integrity.read_checked(recon_path, g["phase"], "phase", (0, slice(None), slice(mid, mid + rb)))
+    angles, pix = g["angle"][...], float(g.attrs["pixel_size_m"])
+    c = tomography.rotation_center_from_opposite(sino, angles, pix)
+    return c if c is not None else tomography.estimate_rotation_center(sino, angles, pix)
+
+
+def tomo_scan(
+    recon_path,
+    *,
+    scheduler: str = "threads",
+    device: str = "cpu",
+    center_m: float | None = None,
+    runner: Runner | None = None,
+    fbp: str = "auto",
+) -> dict:
+    """Tomography stage: FBP of phase and attenuation per (position, row block) -> delta, beta.
+
+    ``fbp`` (:data:`tomography.FBP_METHODS`): "auto" is gridding where its NUFFT is installed.
+    The method used is recorded; tomograms made by another are made again, never mixed.
+    """
+    import zarr
+
+    check_scheduler(scheduler)
+    fbp = tomography.resolve_fbp(fbp, resolve_device(device) if "://" not in scheduler else np)
+    path = str(Path(recon_path).resolve())
+    if not Path(path).exists():
+        raise scan_io.ScanError(f"{path}: no such reconstruction store; run 'pwf-dask retrieve' first")
+    g = zarr.open_group(path, mode="r+", use_consolidated=False)
+    if "phase" not in g:
+        raise scan_io.ScanError(f"{path}: not a reconstruction store (no 'phase')")
+    _check_retrieved(path, g)
+    estimated = center_m is None
+    if estimated:
+        try:
+            center_m = rotation_center(path)
+        except integrity.DamagedChunk as exc:
+            integrity.reset_projection(path, g, exc.index[0], exc.index[1])
+            raise RetrievalDamaged(
+                f"{exc} (projection {exc.index[:2]}); marked not done: rerun 'pwf-dask retrieve' (or 'run')"
+            ) from None
+    _create_tomograms(g, float(center_m), estimated, fbp)
+    own = runner is None
+    runner = runner or Runner(scheduler)
+    try:
+        done = _verified_blocks(runner, path, g)
+        todo = [(int(p), int(b)) for p, b in zip(*np.nonzero(done == 0))]
+        where = "estimated" if estimated else "given"
+        _say(f"tomo: rotation centre {center_m * 1e6:+.2f} µm ({where}); {len(todo)} of {done.size} blocks to compute")
+        t0 = time.perf_counter()
+        found = runner.map(
+            _tomo_task,
+            todo,
+            label="tomo",
+            unit="slice blocks",
+            count=partial(_count_done, path, "tomo_done", 1),
+            total=done.size,
+            recon_path=path,
+            center_m=float(center_m),
+            fbp=fbp,
+            device=device,
+            fft_workers=runner.fft_workers(),
+        )
+    finally:
+        if own:
+            runner.close()
+    damaged = [d for block in found for d in block]
+    if damaged:
+        raise RetrievalDamaged(
+            f"{len(damaged)} retrieved chunks missing or damaged (first: {damaged[0]}); their projections are "
+            "marked not done: rerun 'pwf-dask retrieve' (or 'run') to recompute them"
+        )
+    wall = time.perf_counter() - t0
+    if todo:
+        g.attrs["tomo_wall_s"] = wall
+    scan_io.consolidate(path)
+    return {"computed": len(todo), "rotation_center_m": float(center_m), "wall_s": wall}
+
+
+def _check_retrieved(path: str, g) -> None:
+    """Every projection retrieved and its chunks there; a lost one is marked not done and named."""
+    done, damaged = integrity.read_bookkeeping(path, g, "iterations")
+    lost = integrity.missing_projection_chunks(path, g, done)
+    for p, a in lost:
+        integrity.reset_projection(path, g, p, a)
+    if damaged or lost:
+        first = str(damaged[0]) if damaged else f"{lost[next(iter(lost))][0][0]} chunk of projection {next(iter(lost))}"
+        raise RetrievalDamaged(
+            f"{path}: {len(damaged) + len(lost)} retrieved projections missing or damaged (first: {first}); "
+            "marked not done: rerun 'pwf-dask retrieve' (or 'run') to recompute them"
+        )
+    missing = int((done < 0).sum())
+    if missing:
+        raise scan_io.ScanError(
+            f"{path}: retrieval incomplete ({missing} projections missing); rerun 'pwf-dask retrieve'"
+        )
+    if g["phase"].shape[1] < 2:
+        raise scan_io.ScanError(f"{path}: one angle; tomography needs >= 2 (its phase and attenuation are complete)")
+
+
+def _create_tomograms(g, center_m: float, estimated: bool, fbp: str = "backproject") -> None:
+    """The delta/beta arrays and their bookkeeping, new unless they exist for this centre (their
+    attributes are written last: an interrupted creation is made again)."""
+    same_fbp = g.attrs.get("fbp", "backproject") == fbp  # stores before issue #31 were backprojected
+    if "delta" in g and float(g.attrs.get("rotation_center_m", np.nan)) == center_m and same_fbp:
+        return
+    npos, _, ny, nx = g["phase"].shape
+    rb = g["phase"].chunks[2]
+    coords = (np.arange(nx) - (nx - 1) / 2) * float(g.attrs["pixel_size_m"])
+    scan_io._create(g, "v", (nx,), (nx,), ("v",), "float64", 0.0, coords)
+    scan_io._create(g, "u", (nx,), (nx,), ("u",), "float64", 0.0, coords)
+    for name in ("delta", "beta"):
+        scan_io._create(g, name, (npos, ny, nx, nx), (1, rb, nx, nx), ("position", "y", "v", "u"), "float32", np.nan)
+    scan_io._create(g, "tomo_done", (npos, -(-ny // rb)), (1, 1), ("position", "row_block"), "int8", 0)
+    g.attrs.update(
+        {
+            "rotation_center_m": center_m,
+            "rotation_center_estimated": estimated,
+            "filter": "ram-lak",
+            "fbp": fbp,
+            "background_removal": "quadratic surface per slice",
+        }
+    )
+
+
+def _verified_blocks(runner, path: str, g) -> np.ndarray:
+    """``tomo_done`` as trusted: a block marked done counts only if its delta/beta chunks are
+    there and decode; any other is named, marked not done and recomputed."""
+    done, damaged = integrity.read_bookkeeping(path, g, "tomo_done")
+    _report_damage("tomo", damaged, "its row block is recomputed")
+    for p, b in integrity.missing_block_chunks(path, done):
+        _say(f"tomo: {path}: delta/beta chunk of row block ({p}, {b}) is missing: recomputed")
+        integrity.reset_block(path, g, p, b)
+        done[p, b] = 0
+    stored = [integrity.block_chunks(int(p), int(b)) for p, b in zip(*np.nonzero(done >= 1))]
+    for fault in _decode_all(runner, path, "row block", stored):
+        _say(f"tomo: {fault}: its row block is recomputed")
+        integrity.reset_block(path, g, *fault.index[:2])
+        done[fault.index[:2]] = 0
+    return done
+
+
+# --- FSC --------------------------------------------------------------------------------
+
+
+def _even_odd_volumes(path, g, name, p, center_m, wl, sign):
+    angles = g["angle"][...]
+    order = np.argsort(angles)
+    halves = (np.sort(order[0::2]), np.sort(order[1::2]))
+    pix = float(g.attrs["pixel_size_m"])
+    vols = []
+    for idx in halves:
+        sino = integrity.read_checked(path, g[name], name, p)[idx]
+        vol = tomography.back_projection(sino, angles[idx], pix, center_m, method=g.attrs.get("fbp", "backproject"))
+        vols.append(tomography.remove_background(sign * wl / (2 * np.pi) * vol))
+    return vols
+
+
+def fsc_scan(recon_path, *, split: str = "auto", criterion: str = "1/4", pairs: int = 5, seed: int = 0) -> dict:
+    """FSC stage: between tomograms of diffuser positions (random pairs, averaged; the
+    paper's procedure) or of even/odd angle halves (K = 1), plus against the truth of a
+    simulated scan (criterion 1/2). Writes fsc_delta, fsc_beta (split, frequency)."""
+    import zarr
+
+    path = str(recon_path)
+    g = zarr.open_group(path, mode="r+", use_consolidated=False)
+    if "phase" in g and g["phase"].shape[1] < 2:
+        raise scan_io.ScanError(f"{path}: one angle; FSC needs tomograms, from >= 2 angles")
+    if "delta" not in g or int(g["tomo_done"][...].min()) == 0:
+        raise scan_io.ScanError(f"{path}: tomograms incomplete; run 'pwf-dask tomo' first")
+    if criterion not in fsc.CRITERIA:
+        raise ValueError(f"unknown criterion {criterion!r}; choose one of {', '.join(fsc.CRITERIA)}")
+    npos = g["delta"].shape[0]
+    if split == "auto":
+        split = "positions" if npos >= 2 else "even-odd"
+    if split == "positions" and npos < 2:
+        raise ValueError("FSC split 'positions' needs K >= 2 diffuser positions; use --split even-odd")
+    pix = float(g.attrs["pixel_size_m"])
+    wl = wavelength_m(float(g.attrs["energy_eV"]))
+    center = float(g.attrs["rotation_center_m"])
+    t0 = time.perf_counter()
+    curves: dict[str, list] = {"delta": [], "beta": []}
+    labels = []
+    if split == "positions":
+        all_pairs = [(i, j) for i in range(npos) for j in range(i + 1, npos)]
+        rng = np.random.default_rng(seed)
+        chosen = (
+            all_pairs
+            if len(all_pairs) <= pairs
+            else [all_pairs[k] for k in rng.choice(len(all_pairs), pairs, replace=False)]
+        )
+        for i, j in chosen:
+            for name in ("delta", "beta"):
+                vi, vj = (integrity.read_checked(path, g[name], name, k) for k in (i, j))
+                f, c, n = fsc.fourier_shell_correlation(vi, vj, pix)
+                curves[name].append(c)
+            labels.append(f"positions {i}-{j}")
+    elif split == "even-odd":
+        for p in range(npos):
+            for name, src, sign in (("delta", "phase", -1.0), ("beta", "attenuation", 1.0)):
+                a, b = _even_odd_volumes(path, g, src, p, center, wl, sign)
+                f, c, n = fsc.fourier_shell_correlation(a, b, pix)
+                curves[name].append(c)
+            labels.append(f"position {p} even-odd angles")
+    else:
+        raise ValueError(f"unknown FSC split {split!r}: use positions or even-odd")
+    nf = len(f)
+    scan_io._create(g, "split", (len(labels),), (len(labels),), ("split",), "int64", 0, np.arange(len(labels)))
+    scan_io._create(g, "frequency", (nf,), (nf,), ("frequency",), "float64", 0.0, f)
+    summary = {"split": split, "labels": labels}
+    for name in ("delta", "beta"):
+        arr = np.array(curves[name])
+        mean = arr.mean(axis=0)
+        res = {c: fsc.resolution(f, mean, n, c) for c in ("1/4", "1/7", "half-bit")}
+        a = scan_io._create(g, f"fsc_{name}", arr.shape, arr.shape, ("split", "frequency"), "float64", np.nan, arr)
+        a.attrs.update(
+            {
+                "criterion": criterion,
+                "resolution_m": res[criterion],
+                "split": split,
+                "labels": json.dumps(labels),
+                "resolution_m_1_4": res["1/4"],
+                "resolution_m_1_7": res["1/7"],
+                "resolution_m_half_bit": res["half-bit"],
+            }
+        )
+        summary[name] = res[criterion]
+    if "simulation_phantom" in g.attrs:
+        summary.update(_fsc_truth(g, f, pix))
+    g.attrs["fsc_wall_s"] = time.perf_counter() - t0
+    scan_io.consolidate(path)
+    return summary
+
+
+def _fsc_truth(g, freq, pix) -> dict:
+    """FSC of each position's tomograms against the simulated truth (criterion 1/2)."""
+    from pwf_dask.simulation import phantom_from_json, refractive_index_volume
+
+    phantom = phantom_from_json(g.attrs["simulation_phantom"])
+    truth = refractive_index_volume(phantom, g["y"][...], g["v"][...], g["u"][...], float(g.attrs["energy_eV"]))
+    npos = g["delta"].shape[0]
+    out = {}
+    for name, t in zip(("delta", "beta"), truth):
+        rows = []
+        for p in range(npos):
+            f, c, n = fsc.fourier_shell_correlation(g[name][p], t, pix)
+            rows.append(c)
+        arr = np.array(rows)
+        res = fsc.resolution(f, arr.mean(axis=0), n, "1/2")
+        a = scan_io._create(
+            g, f"fsc_{name}_truth", arr.shape, arr.shape, ("position", "frequency"), "float64", np.nan, arr
+        )
+        a.attrs.update({"criterion": "1/2", "resolution_m": res})
+        out[f"{name}_truth"] = res
+    return out
+
+
+def _n_angles(recon_path) -> int:
+    import zarr
+
+    return int(zarr.open_group(str(recon_path), mode="r", use_consolidated=False)["phase"].shape[1])
+
+
+def run_scan(
+    scan_path,
+    recon_path,
+    *,
+    scheduler: str = "threads",
+    device: str = "cpu",
+    split: str = "auto",
+    center_m: float | None = None,
+    runner: Runner | None = None,
+    fbp: str = "auto",
+    **retrieve_options,
+) -> dict:
+    """All stages on one scheduler connection: retrieve, tomo, fsc. A single-angle scan (a
+    radiograph) stops after retrieval: ``tomo`` and ``fsc`` are then None."""
+    tomography.resolve_fbp(fbp)  # a bad name fails before anything is written
+    own = runner is None
+    runner = runner or Runner(scheduler)
+    try:
+        r = retrieve_scan(scan_path, recon_path, scheduler=scheduler, device=device, runner=runner, **retrieve_options)
+        if _n_angles(recon_path) < 2:
+            return {"retrieve": r, "tomo": None, "fsc": None}
+        try:
+            t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner, fbp=fbp)
+        except RetrievalDamaged as exc:  # recompute what tomography found damaged, once
+            _say(f"run: {exc}; recomputing")
+            again = retrieve_scan(
+                scan_path, recon_path, scheduler=scheduler, device=device, runner=runner, **retrieve_options
+            )
+            r["computed"] += again["computed"]
+            t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner, fbp=fbp)
+    finally:
+        if own:
+            runner.close()
+    f = fsc_scan(recon_path, split=split)
+    return {"retrieve": r, "tomo": t, "fsc": f}

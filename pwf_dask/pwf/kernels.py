@@ -1,0 +1,256 @@
+"""Fused element-wise passes of the PWF iteration (Algorithm S1 and S2), one memory pass each.
+
+Written once in array-module terms (:func:`_generic`: NumPy or CuPy expressions) and, on the
+CPU, once more as a compiled loop (numba) that reads each operand once and writes each result
+once. NumPy evaluates ``(f - y) * mask`` and its sum of squares as four passes with two
+temporaries; at 1024^2 and above each pass costs as much as a fifth of an FFT, and an iteration
+had about thirty of them (issue #31). The compiled loops accumulate sums in float64, as
+:func:`pwf_dask.backend.inner` does, so they agree with the NumPy expressions to float32
+rounding (``tests/test_kernels.py``). CuPy fuses its own element-wise expressions; it gets the
+array-module form.
+
+Each function names the paper's quantity it computes:
+
+- :func:`intensity` |v|^2 (Eq. forwardModel's modulus),
+- :func:`residual_and_loss` e = (f - y) M and L = sum e^2 (Eq. lossFunction),
+- :func:`times_conj` c conj(x) (the last factor of the Wirtinger derivative, Algorithm S2),
+- :func:`weighted_power` sum w |a|^2 (the regularizer's Parseval sum),
+- :func:`step_and_norm` psi_k - psi_{k-1} and its squared norm (the stop rule's step),
+- :func:`field_correlation` |x|^2 and <x_prev, x> (the paper's stop rule),
+- :func:`descent_point` phi = psi - eta d and Re<d, phi - phi_prev> (Algorithm S1, line 12,
+  and the gradient restart's test),
+- :func:`momentum_point` phi + beta (phi - phi_prev) (Algorithm S1, line 14).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from pwf_dask.backend import get_array_module
+
+#: the numba module once imported (on first use: it costs half a second), or None where it is
+#: missing (a bare source checkout: NumPy's passes are used); tests set None to compare
+numba: Any = ...
+_COMPILED: dict = {}
+
+
+def _numba():
+    global numba
+    if numba is ...:
+        try:
+            import numba as module
+        except ImportError:  # pragma: no cover
+            module = None
+        numba = module
+    return numba
+
+
+def _jit(name: str):
+    """The compiled loop ``name``, built on first use and cached on disk by numba. Sums may be
+    reassociated (``reassoc``: the float64 accumulations vectorize, 2-4x faster than strictly
+    in order), but infinities and NaNs keep their meaning: an overflowing trial step must still
+    give J = inf."""
+    if name not in _COMPILED:
+        _COMPILED[name] = _numba().njit(_LOOPS[name], nogil=True, cache=True, fastmath={"reassoc", "contract"})
+    return _COMPILED[name]
+
+
+def _cpu(*arrays) -> bool:
+    return all(isinstance(a, np.ndarray) and a.flags.c_contiguous for a in arrays) and _numba() is not None
+
+
+# --- the compiled loops: flat, contiguous operands --------------------------------------------
+
+
+def _intensity_loop(v, out):
+    for i in range(v.size):
+        z = v[i]
+        out[i] = z.real * z.real + z.imag * z.imag
+
+
+def _residual_loop(f, y, out):
+    total = 0.0
+    for i in range(f.size):
+        e = f[i] - y[i]
+        out[i] = e
+        total += np.float64(e) * e
+    return total
+
+
+def _residual_masked_loop(f, y, mask, out):
+    total = 0.0
+    for i in range(f.size):
+        e = (f[i] - y[i]) * mask[i]
+        out[i] = e
+        total += np.float64(e) * e
+    return total
+
+
+def _times_conj_loop(c, x):
+    for i in range(c.size):
+        c[i] = c[i] * np.conj(x[i])
+
+
+def _weighted_power_loop(a, w):
+    total = 0.0
+    for i in range(a.size):
+        z = a[i]
+        total += np.float64(w[i]) * (np.float64(z.real) * z.real + np.float64(z.imag) * z.imag)
+    return total
+
+
+def _step_loop(psi, last, out):
+    total = 0.0
+    for i in range(psi.size):
+        s = psi[i] - last[i]
+        out[i] = s
+        total += np.float64(s.real) * s.real + np.float64(s.imag) * s.imag
+    return total
+
+
+def _correlation_loop(x, prev):
+    norm = 0.0
+    re = 0.0
+    im = 0.0
+    for i in range(x.size):
+        a = x[i]
+        b = prev[i]
+        norm += np.float64(a.real) * a.real + np.float64(a.imag) * a.imag
+        # conj(b) a
+        re += np.float64(b.real) * a.real + np.float64(b.imag) * a.imag
+        im += np.float64(b.real) * a.imag - np.float64(b.imag) * a.real
+    return norm, re, im
+
+
+def _descent_loop(psi, d, phi_prev, eta, out):
+    total = 0.0
+    for i in range(psi.size):
+        p = psi[i] - eta * d[i]
+        out[i] = p
+        s = p - phi_prev[i]
+        g = d[i]
+        total += np.float64(g.real) * s.real + np.float64(g.imag) * s.imag
+    return total
+
+
+def _momentum_loop(phi, phi_prev, beta, out):
+    for i in range(phi.size):
+        p = phi[i]
+        out[i] = p + beta * (p - phi_prev[i])
+
+
+_LOOPS = {
+    "intensity": _intensity_loop,
+    "residual": _residual_loop,
+    "residual_masked": _residual_masked_loop,
+    "times_conj": _times_conj_loop,
+    "weighted_power": _weighted_power_loop,
+    "step": _step_loop,
+    "correlation": _correlation_loop,
+    "descent": _descent_loop,
+    "momentum": _momentum_loop,
+}
+
+
+def _flat(*arrays):
+    return [a.reshape(-1) for a in arrays]
+
+
+# --- the passes ------------------------------------------------------------------------------
+
+
+def intensity(v):
+    """|v|^2 of a complex array, as a real array of its precision."""
+    if _cpu(v):
+        out = np.empty(v.shape, dtype=v.real.dtype)
+        _jit("intensity")(*_flat(v, out))
+        return out
+    xp = get_array_module(v)
+    out = xp.square(v.real)
+    out += xp.square(v.imag)
+    return out
+
+
+def residual_and_loss(f, y, mask=None):
+    """e = (f - y) M (M: 1 on measured pixels, 0 elsewhere; None: all measured) and
+    L = sum e^2, summed in float64."""
+    if _cpu(f, y) and (mask is None or _cpu(mask)) and f.dtype == y.dtype:
+        out = np.empty(f.shape, dtype=f.dtype)
+        if mask is None:
+            loss = _jit("residual")(*_flat(f, y, out))
+        else:
+            loss = _jit("residual_masked")(*_flat(f, y, mask.astype(f.dtype, copy=False), out))
+        return out, float(loss)
+    xp = get_array_module(f)
+    r = f - y
+    if mask is not None:
+        r *= mask
+    return r, float(xp.sum(r * r, dtype=np.float64))
+
+
+def times_conj(c, x):
+    """c conj(x), in c's memory."""
+    if _cpu(c, x) and c.dtype == x.dtype:
+        _jit("times_conj")(*_flat(c, x))
+        return c
+    xp = get_array_module(c)
+    c *= xp.conj(x)
+    return c
+
+
+def weighted_power(a, w) -> float:
+    """sum w |a|^2 (w real, a's shape), in float64."""
+    if _cpu(a, w) and a.shape == w.shape:
+        return float(_jit("weighted_power")(*_flat(a, w)))
+    xp = get_array_module(a)
+    power = xp.square(a.real) + xp.square(a.imag)
+    power *= w
+    return float(xp.sum(power, dtype=np.float64))
+
+
+def step_and_norm(psi, last):
+    """(psi - last, |psi - last|^2)."""
+    if _cpu(psi, last) and psi.dtype == last.dtype:
+        out = np.empty_like(psi)
+        return out, float(_jit("step")(*_flat(psi, last, out)))
+    from pwf_dask.backend import inner
+
+    s = psi - last
+    return s, inner(s, s).real
+
+
+def field_correlation(x, prev) -> tuple[float, complex]:
+    """(|x|^2, <prev, x> = sum conj(prev) x), in float64: the stop rule's field correlation."""
+    if _cpu(x, prev) and x.dtype == prev.dtype:
+        norm, re, im = _jit("correlation")(*_flat(x, prev))
+        return float(norm), complex(re, im)
+    from pwf_dask.backend import inner
+
+    return inner(x, x).real, inner(prev, x)
+
+
+def descent_point(psi, d, phi_prev, eta: float):
+    """(phi = psi - eta d, Re<d, phi - phi_prev>)."""
+    if _cpu(psi, d, phi_prev) and psi.dtype == d.dtype == phi_prev.dtype:
+        out = np.empty_like(psi)
+        uphill = _jit("descent")(*_flat(psi, d, phi_prev), psi.real.dtype.type(eta), _flat(out)[0])
+        return out, float(uphill)
+    from pwf_dask.backend import inner
+
+    phi = d * (-eta)
+    phi += psi
+    return phi, inner(d, phi - phi_prev).real
+
+
+def momentum_point(phi, phi_prev, beta: float):
+    """phi + beta (phi - phi_prev), a new array."""
+    if _cpu(phi, phi_prev) and phi.dtype == phi_prev.dtype:
+        out = np.empty_like(phi)
+        _jit("momentum")(*_flat(phi, phi_prev), phi.real.dtype.type(beta), _flat(out)[0])
+        return out
+    out = phi - phi_prev
+    out *= beta
+    out += phi
+    return out

@@ -1,0 +1,193 @@
+"""Simulated scans written as scan stores (CONTRACT §1): presets, raw counts with flat and dark.
+
+:func:`simulate_scan` draws a phantom (:mod:`~pwf_dask.simulation.phantoms`), simulates every
+angle's speckle (:mod:`~pwf_dask.simulation.speckle`) and writes the store through
+:mod:`pwf_dask.stores.scan_io`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import replace
+
+import numpy as np
+
+from pwf_dask.physics import diffusers
+from pwf_dask.progress import Progress
+from pwf_dask.simulation.phantoms import PAPER_BEAD_RADIUS_M, phantom_to_json, scan_phantom
+from pwf_dask.simulation.speckle import SpeckleSetup, SpeckleSimulator
+
+PRESETS: dict[str, dict] = {
+    # a slab of the paper's scan (the default): glass beads of the paper's size (one of 83 um
+    # across fills the 160 rows) at its 0.65 um pixel, so a bead's radius is ~12 coherence
+    # lengths as in the paper; a few minutes on a laptop
+    "beads": dict(shape=(160, 320), angles=121, positions=2, photons=1e4, bead_radius_m=PAPER_BEAD_RADIUS_M),
+    # seconds on a laptop: what `pwf-dask demo` reconstructs. The phantom is the paper's
+    # shrunk to 128 px: its beads are 12 px (2 coherence lengths) in radius, smaller than
+    # the paper's, and PWF with the paper's alpha overshoots them (docs/validation.md, Where PWF fails)
+    "demo": dict(shape=(48, 128), angles=61, positions=2, photons=1e4),
+    # the demo's phantom on a larger frame: beads up to 18 px in radius
+    "small": dict(shape=(64, 192), angles=121, positions=2, photons=1e4),
+    # the paper's scan: 801 angles over 0-180 degrees of 2160 x 2560 pixels (~18 GB)
+    "paper": dict(shape=(2160, 2560), angles=801, positions=1, photons=1e4, bead_radius_m=PAPER_BEAD_RADIUS_M),
+}
+
+
+#: what ``pwf-dask simulate`` (and :func:`simulate_scan`) draws when no preset is named
+DEFAULT_PRESET = "beads"
+
+
+def simulate_scan(
+    path,
+    *,
+    preset: str = DEFAULT_PRESET,
+    shape: tuple[int, int] | None = None,
+    angles: int | None = None,
+    positions: int | None = None,
+    photons: float | None = None,
+    seed: int = 0,
+    raw: bool = True,
+    rotation_axis_offset_px: float = 0.0,
+    diffuser_upstream_m: float = 0.0,
+    zingers: float = 0.0,
+    diffuser_drift_px: tuple[float, float] = (0.0, 0.0),
+    cylinder_width_fraction: float | None = None,
+    dark_field_px: float = 0.0,
+    diffuser_grit: str = diffusers.DEFAULT_GRIT,
+    diffuser_radius_median_m: float | None = None,
+    diffuser_grain_shape: str = "spheres",
+    progress: bool = True,
+) -> str:
+    """Simulate a whole scan into a Zarr store (CONTRACT §1) and return its path.
+
+    Angles span 0-180 degrees inclusive; each of the K positions is an independent diffuser
+    realisation with its own reference. ``raw``: uint16 counts with a flat (a beam profile)
+    and a dark frame, as a detector delivers them; else flat/dark-corrected float32. The rotation
+    axis sits ``rotation_axis_offset_px`` from the frame centre (the tomography stage must
+    find it). ``diffuser_upstream_m`` > 0 puts the diffuser that far upstream of the sample
+    (the scan records L1 = 0). ``zingers`` is the fraction of pixels of every frame (sample and
+    reference) hit by a zinger: one pixel gets 2-20x the open-beam counts on top (a scattered
+    X-ray on the sensor; :mod:`pwf_dask.physics.detector`). ``diffuser_drift_px`` = (dy, dx): the
+    diffuser drifts linearly in time from where it was for the reference to that far (detector
+    pixels) at the last angle (thermal drift; :func:`pwf_dask.calibration.speckle_drift_px`).
+    ``cylinder_width_fraction``: the cylinder's diameter over the frame width (default
+    :data:`SCAN_CYLINDER_WIDTH_FRACTION`); above 1 the scan is an interior scan
+    (:func:`scan_phantom`). ``dark_field_px`` > 0: the sample scatters at small angles and
+    blurs the speckle behind its thickest part by a Gaussian of that sigma (detector pixels;
+    :func:`dark_field_blur`). The diffuser is four layers of ``diffuser_grit`` sandpaper (the
+    paper's P3000 by default), or grains of ``diffuser_radius_median_m``, of
+    ``diffuser_grain_shape`` (:mod:`pwf_dask.physics.diffusers`). The phantom, the diffuser and the
+    truth are recorded in the attributes.
+    """
+    from pwf_dask.stores import scan_io
+
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    cfg = dict(PRESETS[preset])
+    shape = tuple(shape or cfg["shape"])
+    n_ang = int(angles or cfg["angles"])
+    n_pos = int(positions or cfg["positions"])
+    photons = float(photons or cfg["photons"])
+    if n_ang < 2 or n_pos < 1 or min(shape) < 32 or photons <= 0:
+        raise ValueError(
+            f"simulate: need >= 2 angles, >= 1 position, >= 32 x 32 px, photons > 0; got "
+            f"{n_ang}, {n_pos}, {shape}, {photons}"
+        )
+    drift = np.asarray(diffuser_drift_px, float)
+    if drift.shape != (2,) or not np.all(np.isfinite(drift)):
+        raise ValueError(f"simulate: diffuser_drift_px is a finite (dy, dx) pair, got {diffuser_drift_px!r}")
+    if cylinder_width_fraction is not None and not 0 < cylinder_width_fraction <= 10:
+        raise ValueError(f"simulate: cylinder_width_fraction is in (0, 10], got {cylinder_width_fraction}")
+    if not 0 <= dark_field_px <= 20:
+        raise ValueError(f"simulate: dark_field_px is a blur sigma in [0, 20] px, got {dark_field_px}")
+    if not 0 <= zingers < 0.1:
+        raise ValueError(f"simulate: zingers is a fraction of the pixels in [0, 0.1), got {zingers}")
+    setup = SpeckleSetup(
+        shape=shape,
+        photons=photons,
+        diffuser_grit=diffuser_grit,
+        diffuser_radius_median_m=diffuser_radius_median_m,
+        diffuser_grain_shape=diffuser_grain_shape,
+    )
+    if diffuser_upstream_m:
+        setup = replace(setup, sample_diffuser_distance_m=0.0, diffuser_upstream_m=diffuser_upstream_m)
+    p = setup.pixel_size_m
+    setup.rotation_axis_offset_m = rotation_axis_offset_px * p
+    phantom = scan_phantom(shape, p, seed, cylinder_width_fraction, cfg.get("bead_radius_m"))
+    angles_deg = np.linspace(0.0, 180.0, n_ang)
+    attrs = {
+        "energy_eV": setup.energy_eV,
+        "pixel_size_m": p,
+        "sample_diffuser_distance_m": setup.sample_diffuser_distance_m,
+        "diffuser_detector_distance_m": setup.diffuser_detector_distance_m,
+        "flat_dark_corrected": not raw,
+        "simulated": True,
+        "simulation_preset": preset,
+        "simulation_photons": photons,
+        "simulation_seed": seed,
+        "simulation_coherence_length_x_m": setup.coherence_length_x_m,
+        "simulation_coherence_length_y_m": setup.coherence_length_y_m,
+        "simulation_rotation_axis_offset_m": setup.rotation_axis_offset_m,
+        "simulation_diffuser_upstream_m": setup.diffuser_upstream_m,
+        "simulation_zingers": zingers,
+        "simulation_dark_field_px": float(dark_field_px),
+        "simulation_diffuser_grit": setup.diffuser_grit if diffuser_radius_median_m is None else "",
+        "simulation_diffuser_radius_median_m": setup.diffuser_radius_median_m,
+        "simulation_diffuser_grain_shape": setup.diffuser_grain_shape,
+        "simulation_diffuser_drift_y_px": float(diffuser_drift_px[0]),
+        "simulation_diffuser_drift_x_px": float(diffuser_drift_px[1]),
+        "simulation_phantom": phantom_to_json(phantom),
+    }
+    dtype = "uint16" if raw else "float32"
+    g = scan_io.create_scan(
+        path,
+        n_positions=n_pos,
+        angles_deg=angles_deg,
+        shape=shape,
+        pixel_size_m=p,
+        dtype=dtype,
+        attrs=attrs,
+        flat_dark=raw,
+    )
+    ny, nx = shape
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    beam = 1.0 - 0.15 * (((xx - nx / 2) / nx) ** 2 + ((yy - ny / 2) / ny) ** 2)  # flat-field profile
+    dark_level = 100.0
+    noise_rng = np.random.default_rng(seed + 7)
+    if raw:
+        g["flat"][...] = np.round(beam * photons + dark_level).astype(np.uint16)
+        g["dark"][...] = np.full(shape, dark_level, np.uint16)
+
+    # its own stream, so that a scan without zingers is the scan simulated before they existed
+    zinger_rng = np.random.default_rng(seed + 13)
+    n_zingers = int(round(zingers * ny * nx))
+
+    def add_zingers(frame, level):
+        hit = zinger_rng.choice(frame.size, n_zingers, replace=False)
+        frame.flat[hit] += zinger_rng.uniform(2.0, 20.0, n_zingers) * level
+        return frame
+
+    def detect(intensity):
+        if not raw:
+            img = (noise_rng.poisson(np.clip(intensity, 0, None) * photons) / photons).astype(np.float32)
+            return add_zingers(img, 1.0) if n_zingers else img
+        counts = noise_rng.poisson(np.clip(intensity, 0, None) * beam * photons) + dark_level
+        if n_zingers:
+            counts = add_zingers(counts.astype(np.float64), photons)
+        return np.clip(counts, 0, 65535).astype(np.uint16)
+
+    written = [0]
+    with contextlib.ExitStack() as stack:
+        if progress:
+            stack.enter_context(Progress("simulate", n_pos * n_ang, lambda: written[0], unit="projections"))
+        for k in range(n_pos):
+            sim = SpeckleSimulator(setup, seed=seed + 101 * k)
+            t = sim.diffuser()
+            g["reference"][k] = detect(sim.intensity(None, t))
+            for a, ang in enumerate(angles_deg):
+                fld, psi = sim.sample_field(phantom, float(ang))
+                t_a = sim.diffuser(tuple(drift * a / (n_ang - 1))) if drift.any() else t
+                g["projections"][k, a] = detect(sim.intensity(fld, t_a, sim.dark_field_sigma_px(psi, dark_field_px)))
+                written[0] += 1
+    scan_io.consolidate(path)
+    return str(path)

@@ -1,0 +1,3 @@
+"""Tomography: filtered back projection and the rotation centre (tomography), gridding FBP (gridrec),
+Fourier shell correlation (fsc). Per slice, on NumPy or CuPy arrays.
+"""
