@@ -40,7 +40,7 @@ def get_array_module(*arrays: Any) -> ModuleType:
 
 
 def resolve_device(device: str) -> ModuleType:
-    """Map ``cpu|gpu|auto`` (CONTRACT §3 ``--device``) to numpy or cupy."""
+    """Map ``cpu|gpu|auto`` (docs/scan-format.md §3 ``--device``) to numpy or cupy."""
     if device == "cpu":
         return np
     cp = cupy_or_none()

@@ -1,6 +1,6 @@
 """Command line: parses and calls; every computation lives in the library modules.
 
-Commands of CONTRACT §3: simulate, retrieve, tomo, fsc, run, demo; plus ``ingest``, ``estimate``, ``verify``,
+Commands of docs/scan-format.md §3: simulate, retrieve, tomo, fsc, run, demo; plus ``ingest``, ``estimate``, ``verify``,
 ``preview``, ``export`` and ``bench``.
 """
 
@@ -329,7 +329,7 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     """Every retrieval option of ``retrieve`` and ``run`` (read back by :func:`retrieval_kwargs`)."""
     from pwf_dask.physics.detector import DEFAULT_OUTLIER_SIGMA
     from pwf_dask.pipeline.workflow import DEFAULT_ANGLE_CHAIN
-    from pwf_dask.pwf.solver import DEFAULT_ALPHA, PAPER_TOL
+    from pwf_dask.pwf.solver import DEFAULT_ALPHA, DEFAULT_GAMMA, STOP_RULE
 
     p.add_argument(
         "--method",
@@ -337,10 +337,13 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
         choices=["pwf", "lcs", "umpa", "gf", "mist"],
         help="pwf (single shot, the paper's) or a speckle-tracking baseline (K >= 1 positions; docs/validation.md)",
     )
-    p.add_argument("--max-iter", type=int, default=2000, help="pwf: iterations per projection at most")
-    p.add_argument("--tol", type=float, default=PAPER_TOL, help="1 - field correlation of successive iterates")
+    p.add_argument("--max-iter", type=int, default=STOP_RULE.max_iter, help="pwf: iterations per projection at most")
+    p.add_argument("--tol", type=float, default=STOP_RULE.tol, help="1 - field correlation of successive iterates")
     p.add_argument(
-        "--gamma", type=float, default=1.0, help="width of the regularization window over the STF (0: no window)"
+        "--gamma",
+        type=float,
+        default=DEFAULT_GAMMA,
+        help="width of the regularization window over the STF (0: no window)",
     )
     p.add_argument(
         "--alpha",
@@ -527,7 +530,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="the diffuser's grains: spheres (default), faceted (pyramids, like crushed SiC) or mixed",
     )
     s.set_defaults(func=_simulate)
-    i = command("ingest", "TIFF or HDF5 detector files into a scan store (CONTRACT §1)")
+    i = command("ingest", "TIFF or HDF5 detector files into a scan store (docs/scan-format.md §1)")
     i.add_argument("out", help="the new scan store (a path that does not exist yet)")
     src = "TIFF file or glob, or FILE.h5:/dataset"
     i.add_argument("--projections", nargs="+", help=f"sample frames, one {src} per diffuser position")
@@ -553,7 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--flat-dark-corrected", action="store_true", help="the frames are already (I - dark)/(flat - dark)")
     i.set_defaults(func=_ingest)
     r = command("retrieve", "phase and attenuation of every projection (resumable)")
-    r.add_argument("scan", help="the scan store (CONTRACT §1)")
+    r.add_argument("scan", help="the scan store (docs/scan-format.md §1)")
     r.add_argument("recon", help="the reconstruction store: created, or resumed with the same options")
     add_retrieval_options(r)
     _compute_options(r)
@@ -569,7 +572,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--criterion", default="1/4", choices=["1/4", "1/7", "half-bit", "1/2"], help="FSC threshold")
     f.set_defaults(func=_fsc)
     u = command("run", "retrieve + tomo + fsc + preview figures (resumable)")
-    u.add_argument("scan", help="the scan store (CONTRACT §1)")
+    u.add_argument("scan", help="the scan store (docs/scan-format.md §1)")
     u.add_argument("recon", help="the reconstruction store: created, or resumed with the same options")
     _split_option(u)
     add_tomo_options(u)

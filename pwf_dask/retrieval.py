@@ -1,4 +1,4 @@
-"""One projection, end to end: calibration, PWF, background (CONTRACT §4).
+"""One projection, end to end: calibration, PWF, background (docs/scan-format.md §4).
 
 :func:`retrieve_projection` is the public entry point every later stage maps over.
 """
@@ -415,11 +415,11 @@ def retrieve_projection(
     sample_diffuser_distance_m: float,
     diffuser_detector_distance_m: float,
     method: str = "pwf",
-    max_iter: int = 2000,
-    tol: float = solver.PAPER_TOL,
-    gamma: float = 1.0,
+    max_iter: int = solver.STOP_RULE.max_iter,
+    tol: float = solver.STOP_RULE.tol,
+    gamma: float = solver.DEFAULT_GAMMA,
     alpha: complex | str = solver.DEFAULT_ALPHA,
-    step: float = 1.0,
+    step: float = solver.DEFAULT_STEP,
     coherence_length_x_m: float | None = None,
     coherence_length_y_m: float | None = None,
     coherence_method: str = "template",
@@ -428,10 +428,10 @@ def retrieve_projection(
     precision: str = "single",
     upsample: int | str = "auto",
     pad: int | str = "auto",
-    min_iter: int = 50,
-    patience: int = 10,
-    rtol: float = 1e-3,
-    jtol: float = 1e-5,
+    min_iter: int = solver.STOP_RULE.min_iter,
+    patience: int = solver.STOP_RULE.patience,
+    rtol: float = solver.STOP_RULE.rtol,
+    jtol: float = solver.STOP_RULE.jtol,
     phase_screen_iter: int = 0,
     diffuser_model: str = "single-material",
     diffuser_material: str = "silicon carbide",
@@ -454,52 +454,105 @@ def retrieve_projection(
     outlier_sigma: float | None = DEFAULT_OUTLIER_SIGMA,
     diffuser_drift: str | tuple[float, float] = "auto",
 ) -> RetrievalResult:
-    """Retrieve phase and attenuation from one flat/dark-corrected speckle image (CONTRACT §4).
+    """Retrieve phase and attenuation from one flat/dark-corrected speckle image (docs/scan-format.md §4).
 
-    Parameters mirror the CLI: ``method`` (``"pwf"``), ``max_iter``, ``tol`` (1 - field
-    correlation of successive iterates, the paper's 10^-0.00001 by default), ``gamma`` and
-    ``alpha`` (Eqs. STF and Algorithm S2), ``coherence_length_x_m``/``_y_m`` (calibrated from
-    the reference when not given: :func:`pwf_dask.calibration.fit_coherence_lengths` by
-    ``coherence_method``, ``"template"`` (the IOTF fitted jointly with the diffuser's own
-    speckle spectrum) or ``"gaussian"`` (the paper's Siegert fit)). The model integrates
-    over the detector pixel on top of the IOTF unless the lengths already include the pixel's
-    blur (``coherence_includes_pixel_blur``; so do the ``"gaussian"`` fit's). Ablation switches: ``preconditioner``,
-    ``gamma=0`` or ``alpha=0`` (no regularizer). ``precision`` is ``"single"`` (complex64) or
-    ``"double"``. ``upsample`` forms |v|^2 on a finer grid (``"auto"``: when it would alias);
-    ``pad`` extends the computational grid by that many pixels each side (``"auto"``: the
-    diffraction spread plus blur). ``background_mask`` (True = sample-free) overrides the
-    detected background used to zero the phase and attenuation.
+    Parameters
+    ----------
+    sample, reference : 2-D NumPy or CuPy arrays
+        Flat/dark-corrected speckle images with and without the sample, of one shape.
+    energy_eV, pixel_size_m : float
+        Photon energy and detector pixel size.
+    sample_diffuser_distance_m, diffuser_detector_distance_m : float
+        L1 and L2 of Eq. (forwardModel); L1 = 0 skips the first propagation.
+    method : {"pwf", "umpa", "lcs", "gf", "mist"}
+        PWF, or a speckle-tracking baseline (:func:`retrieve_tracking`; ``tracking_options``,
+        ``sample_material`` and ``sample_delta_over_beta`` (MIST) go to it).
+    max_iter, tol, min_iter, patience, rtol, jtol : stop rule
+        :class:`pwf_dask.pwf.solver.StopRule`: ``tol`` is 1 - the field correlation of
+        successive iterates (the paper's 1 - 10^-0.00001), ``tol=0`` runs ``max_iter``.
+    gamma, alpha : float, complex or str
+        Regularization window width over the STF and weights, Eq. (regularization window) and
+        Algorithm S2; ``alpha="paper"`` (0.1+0.01j) or ``"discrepancy"`` (:func:`parse_alpha`);
+        ``gamma=0`` or ``alpha=0``: no regularizer.
+    step, step_search, restart : float, bool, str
+        eta of Algorithm S1 (in units of 1/L with ``step_search``) and the momentum restart of
+        :func:`pwf_dask.pwf.solver.pwf` (``"none"``: Algorithm S1 as printed).
+    coherence_length_x_m, coherence_length_y_m : float, optional
+        Coherence lengths of the IOTF, Eq. (IOTF); calibrated from the reference when not given
+        (:func:`pwf_dask.calibration.fit_coherence_lengths` by ``coherence_method``,
+        ``"template"`` or ``"gaussian"``, the paper's Siegert fit). The model integrates over the
+        pixel on top of the IOTF unless ``coherence_includes_pixel_blur`` (the Gaussian fit's do).
+    preconditioner : bool
+        The inverse-Laplacian preconditioner of the phase, Eq. (preconditioner) (ablation switch).
+    precision : {"single", "double"}
+        complex64 or complex128 iterations.
+    upsample, pad, field_upsample : int, float or "auto"
+        |v|^2 on a finer grid where it would alias; the computational grid extended by ``pad``
+        pixels each side; exp(psi), t and both propagations on a grid ``field_upsample`` times
+        finer (Notes).
+    phase_screen_iter, diffuser_model, diffuser_material, diffuser_beta_over_delta, diffuser_refine_iter
+        The diffuser estimate t_r (Notes); ``diffuser`` passes one computed before
+        (:func:`estimate_diffuser`), on the computational grid.
+    diffuser_upstream_m : float
+        Not in the paper; needs L1 = 0: the diffuser that far upstream of the sample.
+    background_mask, zero_background : array of bool, bool
+        Sample-free pixels (True) that override the detected background; whether the phase and
+        attenuation are zeroed there by a fitted plane (:mod:`pwf_dask.physics.background`).
+    normalization, phase_scale : str, float or "auto"
+        The objective's scale (the paper's) and the metric scale kappa of the phase block.
+    fft_workers : int, optional
+        FFT threads of this call (default: the process's budget).
+    initial : {"zero", "umpa"} or complex array
+        Start of Algorithm S1: zero (the paper), UMPA's one-image estimate, or a given psi.
+    outlier_sigma : float or None
+        Zingers and hot pixels beyond this many sigma are repaired first
+        (:mod:`pwf_dask.physics.detector`); None leaves the images untouched.
+    diffuser_drift : {"auto", "off"} or (dy, dx)
+        Not in the paper: t_r moved to where the diffuser was for the sample frame (Notes).
 
-    The diffuser t_r is estimated from the reference (:mod:`pwf_dask.calibration`):
+    Returns
+    -------
+    RetrievalResult
+        ``phase`` (Im psi, rad) and ``attenuation`` (-Re psi) of the input's kind and shape,
+        ``iterations``, ``converged``, the per-pixel ``residual`` and its ``residual_rmse`` (% of
+        the mean reference), ``loss_history``, the coherence lengths used, and ``parameters``
+        (every choice made, e.g. the field grid and the diffuser fit).
+
+    Raises
+    ------
+    ValueError
+        A bad image, option or geometry, in one line naming it.
+
+    Notes
+    -----
+    The diffuser t_r is estimated from the reference (:mod:`pwf_dask.calibration.diffuser`):
     ``diffuser_model="single-material"`` (default) fits exp(-(kappa + i) theta) with kappa =
     ``diffuser_beta_over_delta`` or, when None, beta/delta of ``diffuser_material`` at the
     energy (xraydb) in ``diffuser_refine_iter`` L-BFGS iterations; ``"zero-phase"`` is the
-    paper's estimate. ``diffuser`` passes a transmission computed before (e.g. once per diffuser
-    position of a scan, by :func:`estimate_diffuser`); it must be on the computational grid.
-    ``diffuser_upstream_m`` (not in the paper; needs L1 = 0): the diffuser sits that far
-    upstream of the sample, and t_r is the fitted diffuser's field at the sample plane
-    (:func:`pwf_dask.calibration.diffuser_transmission`).
+    paper's estimate. With ``diffuser_upstream_m`` t_r is the fitted diffuser's field at the
+    sample plane (:func:`pwf_dask.calibration.diffuser_transmission`).
 
-    ``field_upsample`` evaluates exp(psi), t and both propagations on a finer grid (psi stays
-    on the detector grid; :func:`pwf_dask.pwf.solver.build_model`): ``"auto"`` starts on the grid
-    of :func:`auto_field_upsample` (the detector grid unless the pixel is coarser than the
-    authors' working pixel), on a :data:`DIFFUSER_FIELD_UPSAMPLE` (1.5x) grid at least when the
-    diffuser estimate aliases there
-    (:func:`diffuser_aliasing` above :data:`DIFFUSER_ALIASING_FRACTION`: coarse grains), and
-    goes on with one twice as fine when the solution's phase
-    gradient exceeds :func:`field_gradient_limit` (thick samples); 1 is the paper's model, and
-    a number >= 1 (fractional too) fixes the grid.
-    ``initial`` starts Algorithm S1 from zero (the paper), from UMPA's one-image estimate
-    (``"umpa"``), or from a given complex psi of the image's shape. ``restart`` is the
-    momentum rule of :func:`pwf_dask.pwf.solver.pwf` (``"none"``: Algorithm S1 as printed);
+    ``field_upsample="auto"`` starts on the grid of :func:`auto_field_upsample` (the detector
+    grid unless the pixel is coarser than the authors' working pixel), on a
+    :data:`DIFFUSER_FIELD_UPSAMPLE` (1.5x) grid at least when the diffuser estimate aliases
+    there (:func:`diffuser_aliasing` above :data:`DIFFUSER_ALIASING_FRACTION`: coarse grains),
+    and goes on with one twice as fine when the solution's phase gradient exceeds
+    :func:`field_gradient_limit` (thick samples); 1 is the paper's model, and a number >= 1
+    (fractional too) fixes the grid (:func:`pwf_dask.pwf.solver.build_model`).
     :data:`AUTHORS_RELEASE` holds the choices of the authors' released code.
 
-    ``diffuser_drift`` (not in the paper) moves t_r to where the diffuser was when the
-    sample frame was taken: ``"auto"`` measures the speckle's global shift against the
-    reference (:func:`pwf_dask.calibration.speckle_drift_px`) and moves t_r when it reaches
+    ``diffuser_drift="auto"`` measures the speckle's global shift against the reference
+    (:func:`pwf_dask.calibration.speckle_drift_px`) and moves t_r when it reaches
     :func:`drift_threshold_px` (0.05 px on frames from 160^2), leaving out of the data term the
     strips whose grains came from outside the reference; ``"off"`` never; a (dy, dx) pair in
     pixels moves it by that.
+
+    References
+    ----------
+    The PWF paper (single-shot speckle-based X-ray phase microtomography by preconditioned
+    Wirtinger flow): Eq. (forwardModel), Methods (IOTF, Diffuser transmission function,
+    Preconditioning filter, Regularization window) and Algorithms S1/S2; docs/methods.md maps
+    each to its function.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")

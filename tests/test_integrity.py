@@ -324,6 +324,21 @@ def test_processes_scheduler_survives_a_lost_worker(tmp_path):
     assert (tmp_path / "marker").exists() and len(pids) == 1
 
 
+def test_an_existing_cluster_survives_a_lost_worker(tmp_path):
+    """Issue #29: on a cluster given by its tcp:// address, a worker that dies mid-task is
+    restarted by its nanny and the task retried; the run sees every result."""
+    from distributed import LocalCluster
+
+    from pwf_dask.pipeline.cluster import Runner
+
+    marker = str(tmp_path / "marker")
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        assert cluster.scheduler_address.startswith("tcp://")
+        with Runner(cluster.scheduler_address) as runner:
+            pids = runner.map(_die_once, [marker, marker, marker])
+    assert (tmp_path / "marker").exists() and len(pids) == 3
+
+
 def test_store_paths_are_absolute_before_tasks_are_sent(finished, tmp_path, monkeypatch):
     """Issue #29: relative paths were opened in the workers' working directory."""
     from pwf_dask.pipeline import workflow

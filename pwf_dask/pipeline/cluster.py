@@ -1,4 +1,4 @@
-"""Where tasks run: the schedulers of CONTRACT §3, all existing Dask deployments.
+"""Where tasks run: the schedulers of docs/scan-format.md §3, all existing Dask deployments.
 
 ``threads`` (default: the local threaded scheduler, nothing to start), ``processes`` and
 ``local`` (a distributed LocalCluster of worker processes under nannies; ``local`` with its

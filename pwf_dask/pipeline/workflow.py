@@ -1,4 +1,4 @@
-"""The scan pipeline on Dask: retrieval per chain of angles, tomography per row block, FSC (CONTRACT §2).
+"""The scan pipeline on Dask: retrieval per chain of angles, tomography per row block, FSC (docs/scan-format.md §2).
 
 Every stage reads and writes the reconstruction store (:mod:`pwf_dask.stores.scan_io`) and is
 resumable: retrieval recomputes only projections whose ``iterations`` is still -1 (written
@@ -26,7 +26,7 @@ from pwf_dask.baselines.tracking import MIN_POSITIONS
 from pwf_dask.physics.detector import DEFAULT_OUTLIER_SIGMA, check_threshold, repair_outliers
 from pwf_dask.physics.optics import check_diffuser_upstream, wavelength_m
 from pwf_dask.pipeline.cluster import Runner, check_scheduler, worker_fft_threads
-from pwf_dask.pwf.solver import DEFAULT_ALPHA, PAPER_ALPHA, PAPER_TOL
+from pwf_dask.pwf.solver import DEFAULT_ALPHA, DEFAULT_GAMMA, DEFAULT_STEP, PAPER_ALPHA, STOP_RULE
 from pwf_dask.retrieval import (
     METHODS,
     check_diffuser_drift,
@@ -345,11 +345,11 @@ def retrieve_scan(
     scheduler: str = "threads",
     device: str = "cpu",
     method: str = "pwf",
-    max_iter: int = 2000,
-    tol: float = PAPER_TOL,
-    gamma: float = 1.0,
+    max_iter: int = STOP_RULE.max_iter,
+    tol: float = STOP_RULE.tol,
+    gamma: float = DEFAULT_GAMMA,
     alpha=DEFAULT_ALPHA,
-    step: float = 1.0,
+    step: float = DEFAULT_STEP,
     precision: str = "single",
     outlier_sigma: float | None = DEFAULT_OUTLIER_SIGMA,
     angle_chain: int = DEFAULT_ANGLE_CHAIN,

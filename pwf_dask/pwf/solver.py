@@ -676,19 +676,49 @@ def _low_band_settled(snapshots: list, rtol: float, xp) -> bool:
     return d2 * rho / (1.0 - rho) < rtol * scale
 
 
+@dataclass(frozen=True)
+class StopRule:
+    """When :func:`pwf` stops: the defaults of every caller (retrieval, pipeline, CLI), defined here once.
+
+    ``tol``: the paper's field-correlation test (Algorithm S1, line 14), met on ``patience``
+    consecutive accepted iterations and not before ``min_iter``; ``rtol``: the extrapolated
+    remaining change (:func:`_settled`, over ``window``-iteration windows); ``jtol``: J
+    stationary (:func:`_stationary`) with the band wider than ``low_band_px`` settled
+    (:func:`_low_band_settled`); ``max_iter``: the cap. See :func:`pwf`.
+    """
+
+    max_iter: int = 2000
+    tol: float = PAPER_TOL
+    min_iter: int = 50
+    patience: int = 10
+    rtol: float = 1e-3
+    jtol: float = 1e-5
+    window: int = 20
+    low_band_px: float = LOW_BAND_PX
+
+
+#: the stop rule every caller defaults to
+STOP_RULE = StopRule()
+
+#: eta of Algorithm S1 in units of 1/L (with the step search), and the width of the
+#: regularization window over the STF (Eq. (regularization window)): defaults of every caller
+DEFAULT_STEP = 1.0
+DEFAULT_GAMMA = 1.0
+
+
 def pwf(
     y,
     model: PWFModel,
     *,
-    step: float = 1.0,
-    max_iter: int = 2000,
-    tol: float = PAPER_TOL,
-    min_iter: int = 50,
-    patience: int = 10,
-    rtol: float = 1e-3,
-    jtol: float = 1e-5,
-    window: int = 20,
-    low_band_px: float = LOW_BAND_PX,
+    step: float = DEFAULT_STEP,
+    max_iter: int = STOP_RULE.max_iter,
+    tol: float = STOP_RULE.tol,
+    min_iter: int = STOP_RULE.min_iter,
+    patience: int = STOP_RULE.patience,
+    rtol: float = STOP_RULE.rtol,
+    jtol: float = STOP_RULE.jtol,
+    window: int = STOP_RULE.window,
+    low_band_px: float = STOP_RULE.low_band_px,
     psi0=None,
     step_search: bool = True,
     restart: str = "gradient",

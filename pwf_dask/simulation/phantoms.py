@@ -41,7 +41,7 @@ class Phantom:
     def line_integrals(self, angle_deg: float, x_m: np.ndarray, y_m: np.ndarray, energy_eV: float):
         """(integral of delta, integral of beta) along the beam, in metres, on the (y, x) grid.
 
-        A detector pixel at angle theta sees the line x = u cos(theta) + v sin(theta) (CONTRACT §2).
+        A detector pixel at angle theta sees the line x = u cos(theta) + v sin(theta) (docs/scan-format.md §2).
         """
         th = np.deg2rad(angle_deg)
         c, s = np.cos(th), np.sin(th)
@@ -152,8 +152,8 @@ def phantom_from_json(text: str) -> Phantom:
 def refractive_index_volume(phantom: Phantom, y_m, v_m, u_m, energy_eV: float, supersample: int = 2):
     """True (delta, beta) on the (y, v, u) voxel grid, each voxel averaged over supersample^3 points."""
     y_m, v_m, u_m = (np.asarray(a, np.float64) for a in (y_m, v_m, u_m))
-    dy = abs(y_m[1] - y_m[0]) if y_m.size > 1 else 1.0
     du = abs(u_m[1] - u_m[0])
+    dy = abs(y_m[1] - y_m[0]) if y_m.size > 1 else du  # one slice: a cubic voxel
     off = (np.arange(supersample) + 0.5) / supersample - 0.5
     dc, bc = delta_beta(phantom.cylinder_material, energy_eV)
     delta = np.zeros((y_m.size, v_m.size, u_m.size))

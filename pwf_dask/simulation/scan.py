@@ -1,4 +1,4 @@
-"""Simulated scans written as scan stores (CONTRACT §1): presets, raw counts with flat and dark.
+"""Simulated scans written as scan stores (docs/scan-format.md §1): presets, raw counts with flat and dark.
 
 :func:`simulate_scan` draws a phantom (:mod:`~pwf_dask.simulation.phantoms`), simulates every
 angle's speckle (:mod:`~pwf_dask.simulation.speckle`) and writes the store through
@@ -58,7 +58,7 @@ def simulate_scan(
     diffuser_grain_shape: str = "spheres",
     progress: bool = True,
 ) -> str:
-    """Simulate a whole scan into a Zarr store (CONTRACT §1) and return its path.
+    """Simulate a whole scan into a Zarr store (docs/scan-format.md §1) and return its path.
 
     Angles span 0-180 degrees inclusive; each of the K positions is an independent diffuser
     realisation with its own reference. ``raw``: uint16 counts with a flat (a beam profile)

@@ -1,4 +1,4 @@
-"""Detector files into a scan store (CONTRACT §1): TIFF images and HDF5 datasets.
+"""Detector files into a scan store (docs/scan-format.md §1): TIFF images and HDF5 datasets.
 
 Beamlines write speckle scans as TIFF files (one per angle, or multi-page stacks) or as HDF5
 (the DXchange layout of tomopy: ``/exchange/data``, ``data_white``, ``data_dark``, ``theta``).
@@ -209,7 +209,7 @@ def ingest_scan(
     diffuser_upstream_m: float = 0.0,
     progress: bool = True,
 ) -> str:
-    """Write a CONTRACT §1 scan store at ``out`` from TIFF/HDF5 frame sources; returns its path.
+    """Write a docs/scan-format.md §1 scan store at ``out`` from TIFF/HDF5 frame sources; returns its path.
 
     ``projections`` and ``reference``: one spec each per diffuser position (K >= 1), or one
     HDF5 projections dataset of 4 dims (position, angle, y, x) with a reference of K frames.
@@ -217,7 +217,7 @@ def ingest_scan(
     rotation angles. Every frame is checked as it is written (finite, and non-negative after
     flat/dark correction), so a bad scan fails here with the frame named, and the partial
     store is removed. ``diffuser_upstream_m`` > 0 records a diffuser that far upstream of the
-    sample (with ``sample_diffuser_distance_m`` = 0; not in CONTRACT §1, read by PWF).
+    sample (with ``sample_diffuser_distance_m`` = 0; not in docs/scan-format.md §1, read by PWF).
     """
     out = Path(out)
     if out.exists():

@@ -1,4 +1,4 @@
-"""Scan and reconstruction stores (CONTRACT §1-2): validation, flat/dark correction, layout.
+"""Scan and reconstruction stores (docs/scan-format.md §1-2): validation, flat/dark correction, layout.
 
 A scan is opened with xarray and validated completely before anything is written; every
 problem is one line naming it (:class:`ScanError`). The reconstruction store is laid out for
@@ -32,7 +32,7 @@ REQUIRED_ATTRS = (
 
 
 class ScanError(ValueError):
-    """A scan that breaks CONTRACT §1; the message is one line naming the problem."""
+    """A scan that breaks docs/scan-format.md §1; the message is one line naming the problem."""
 
 
 @dataclass
@@ -55,7 +55,7 @@ class ScanInfo:
     has_flat: bool
     has_dark: bool
     attrs: dict = field(default_factory=dict)
-    #: optional, not in CONTRACT §1: the diffuser this far upstream of the sample (L1 = 0)
+    #: optional, not in docs/scan-format.md §1: the diffuser this far upstream of the sample (L1 = 0)
     diffuser_upstream_m: float = 0.0
 
 
@@ -486,7 +486,7 @@ def create_scan(
     flat_dark: bool = False,
     x_m=None,
 ):
-    """An empty scan store (CONTRACT §1), one chunk per angle and whole frames; returns the group.
+    """An empty scan store (docs/scan-format.md §1), one chunk per angle and whole frames; returns the group.
     Never over an existing path: a store or a folder of the user's files is not ours to clear."""
     import zarr
 

@@ -1,13 +1,13 @@
 """Tomography: filtered back projection per slice, rotation centre, delta and beta (Methods).
 
-Geometry (CONTRACT §2): ``y`` is the rotation axis (detector rows); the reconstructed plane
+Geometry (docs/scan-format.md §2): ``y`` is the rotation axis (detector rows); the reconstructed plane
 (v, u) is centred on the axis, and a detector pixel at angle theta sees the line
 x = u cos(theta) + v sin(theta), x measured from the axis. The filter is Ram-Lak, built in
 the spatial domain as scikit-image's ``iradon`` does (no DC offset from sampling the ramp),
 and each angle is weighted by its share of the half circle, so any angle set works.
 
 delta = -lambda/(2 pi) FBP(phase) and beta = lambda/(2 pi) FBP(attenuation), FBP in
-per-metre units: matter is positive (phase is negative for matter, CONTRACT §2).
+per-metre units: matter is positive (phase is negative for matter, docs/scan-format.md §2).
 """
 
 from __future__ import annotations
