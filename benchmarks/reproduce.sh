@@ -14,6 +14,11 @@
 #   calibration_sweep.* ~3 min: the template fit against the Gaussian over 80 diffusers and geometries
 #   geometry_sweep.*   ~2 min: PWF on other energies, pixels, coherence lengths and distances
 #   frame_size.*       ~12 min: phase gain at 256^2-1024^2 and on wide 25 keV strips of PMMA rods
+#   bench_fbp_cpu.*    ~5 min: gridding FBP against the backprojector, 2560 px x 801 angles
+#   bench_per_scan_cpu.* ~3 min: calibration, diffuser fit and model build against one retrieval
+#   field_grid.*       ~15 min: phase gain and iteration cost of the field grid 1x-2x on P3000 scenes
+#   paper_figures.*    ~8 min: the paper's Fig. 2 and Fig. 3 on simulated scenes, PWF beside LCS K=12
+#   bench_fullwidth_cpu.* ~2.5 h: 801 angles x 32 x 2560 through pwf-dask run, the full scan modelled
 set -euo pipefail
 PWF=${PWF:-.venv/bin/pwf-dask}
 OUT=${OUT:-benchmarks/results}
@@ -23,15 +28,20 @@ case "${1:-all}" in
   stability) "$PWF" bench stability --out "$OUT" ;;
   iteration) "$PWF" bench iteration --out "$OUT" ;;
   scan) "$PWF" bench scan --out "$OUT" ;;
-  bead) "$(dirname "$PWF")/python" benchmarks/bead_contrast.py --out "$OUT" ;;
-  defects) "$(dirname "$PWF")/python" benchmarks/detector_defects.py --out "$OUT" ;;
-  authors) "$(dirname "$PWF")/python" benchmarks/authors_release.py --out "$OUT" ;;
-  drift) "$(dirname "$PWF")/python" benchmarks/drift_baselines.py --out "$OUT" ;;
-  calibration) "$(dirname "$PWF")/python" benchmarks/calibration_dose.py --out "$OUT" ;;
-  calibration-sweep) "$(dirname "$PWF")/python" benchmarks/calibration_sweep.py --out "$OUT" ;;
-  geometry) "$(dirname "$PWF")/python" benchmarks/geometry_sweep.py --out "$OUT" ;;
-  frame-size) "$(dirname "$PWF")/python" benchmarks/frame_size.py --truth-start --out "$OUT" ;;
+  bead) "$(dirname "$PWF")/python" -m benchmarks.bead_contrast --out "$OUT" ;;
+  defects) "$(dirname "$PWF")/python" -m benchmarks.detector_defects --out "$OUT" ;;
+  authors) "$(dirname "$PWF")/python" -m benchmarks.authors_release --out "$OUT" ;;
+  drift) "$(dirname "$PWF")/python" -m benchmarks.drift_baselines --out "$OUT" ;;
+  calibration) "$(dirname "$PWF")/python" -m benchmarks.calibration_dose --out "$OUT" ;;
+  calibration-sweep) "$(dirname "$PWF")/python" -m benchmarks.calibration_sweep --out "$OUT" ;;
+  geometry) "$(dirname "$PWF")/python" -m benchmarks.geometry_sweep --out "$OUT" ;;
+  frame-size) "$(dirname "$PWF")/python" -m benchmarks.frame_size --truth-start --out "$OUT" ;;
+  fbp) "$PWF" bench fbp --out "$OUT" ;;
+  perscan) "$PWF" bench perscan --out "$OUT" ;;
+  fullwidth) "$PWF" bench fullwidth --out "$OUT" ;;
+  field-grid) "$(dirname "$PWF")/python" -m benchmarks.field_grid --out "$OUT" ;;
+  paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size fbp perscan field-grid paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|fbp|perscan|field-grid|paper-figures|fullwidth|all]" >&2; exit 2 ;;
 esac

@@ -262,7 +262,9 @@ def _bench(args) -> int:
         "scan": lambda: bench.run_scan_benchmark(args.out),
         "fbp": lambda: bench.run_fbp_benchmark(args.out, quick=args.quick),
         "perscan": lambda: bench.run_per_scan_benchmark(args.out, quick=args.quick),
-        "fullwidth": lambda: bench.run_fullwidth_benchmark(args.out, quick=args.quick, work_dir=args.work_dir),
+        "fullwidth": lambda: bench.run_fullwidth_benchmark(
+            args.out, quick=args.quick, work_dir=args.work_dir, device=args.device
+        ),
         "stability": lambda: stability.run_stability_benchmark(args.out, quick=args.quick, axes=args.axes),
     }
     if args.what not in runs:
