@@ -17,7 +17,7 @@
 #   bench_fbp_cpu.*    ~5 min: gridding FBP against the backprojector, 2560 px x 801 angles
 #   bench_per_scan_cpu.* ~3 min: calibration, diffuser fit and model build against one retrieval
 #   field_grid.*       ~15 min: phase gain and iteration cost of the field grid 1x-2x on P3000 scenes
-#   paper_figures.*    ~8 min: the paper's Fig. 2 and Fig. 3 on simulated scenes, PWF beside LCS K=12
+#   paper_figures.*    ~1.5 min: the paper's Fig. 2 and Fig. 3 on simulated scenes, PWF beside LCS K=12
 #   bench_fullwidth_cpu.* ~2.5 h: 801 angles x 32 x 2560 through pwf-dask run, the full scan modelled
 set -euo pipefail
 PWF=${PWF:-.venv/bin/pwf-dask}

@@ -16,13 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.algorithm_s1 import algorithm_s1_inputs, algorithm_s1_step
 from benchmarks.reporting import device_name, interleaved_min, write_rows_csv
 from pwf_dask.backend import FFT, default_fft_workers, resolve_device
 from pwf_dask.physics import optics
 from pwf_dask.pwf import solver
 from pwf_dask.stores import scan_io
 from pwf_dask.tomo import tomography
+from tests.algorithm_s1 import algorithm_s1_inputs, algorithm_s1_step
 
 
 def iteration_benchmark(
@@ -144,7 +144,7 @@ def run_iteration_benchmark(out_dir: str | Path, device: str = "cpu", sizes=None
         "difference of 8- and 2-iteration solver runs (a run's set-up, which hundreds of iterations",
         "share, left out). Threads: the",
         "thread budget of the FFTs (and of the threaded exp(psi)), the same for the FFT timed beside.",
-        "*As printed*: Algorithms S1/S2 transcribed line by line (`benchmarks.algorithm_s1`:",
+        "*As printed*: Algorithms S1/S2 transcribed line by line (`tests/algorithm_s1.py`:",
         "16 complex FFTs, 14 with L1 = 0, one array pass per printed operation, as the authors'",
         "released code), timed in the same interleaved rounds; it gives the solver's direction (test).",
         "",

@@ -17,8 +17,8 @@ from pwf_dask.backend import FFT, get_array_module, to_numpy
 from pwf_dask.physics import background as bg
 from pwf_dask.physics import optics
 from pwf_dask.physics.detector import DEFAULT_OUTLIER_SIGMA, repair_outliers
+from pwf_dask.physics.geometry import Geometry
 from pwf_dask.physics.materials import delta_beta
-from pwf_dask.physics.optics import check_diffuser_upstream
 from pwf_dask.pwf import solver
 
 METHODS = ("pwf", "umpa", "lcs", "gf", "mist")
@@ -576,35 +576,16 @@ def retrieve_projection(
             ),
         )
     xp = get_array_module(sample, reference)
-    y = _check_image("sample", sample, xp)
-    ref = _check_image("reference", reference, xp)
-    if y.shape != ref.shape:
-        raise ValueError(f"sample {y.shape} and reference {ref.shape} differ in shape")
-    if not pixel_size_m > 0:
-        raise ValueError(f"pixel_size_m must be positive, got {pixel_size_m}")
-    if sample_diffuser_distance_m < 0 or not diffuser_detector_distance_m > 0:
-        raise ValueError(
-            "distances must satisfy sample_diffuser_distance_m >= 0 and diffuser_detector_distance_m > 0, "
-            f"got {sample_diffuser_distance_m}, {diffuser_detector_distance_m}"
-        )
-    check_diffuser_upstream(diffuser_upstream_m, sample_diffuser_distance_m)
+    y, ref = _check_pair(sample, reference, xp)
+    geometry = Geometry(
+        energy_eV, pixel_size_m, sample_diffuser_distance_m, diffuser_detector_distance_m, diffuser_upstream_m
+    )
     optics.check_plausible_geometry(
-        energy_eV=energy_eV,
-        pixel_size_m=pixel_size_m,
-        sample_diffuser_distance_m=sample_diffuser_distance_m,
-        diffuser_detector_distance_m=diffuser_detector_distance_m,
-        diffuser_upstream_m=diffuser_upstream_m,
-        coherence_length_x_m=coherence_length_x_m,
-        coherence_length_y_m=coherence_length_y_m,
+        coherence_length_x_m=coherence_length_x_m, coherence_length_y_m=coherence_length_y_m
     )
     check_solver_options(max_iter, tol, gamma, step, phase_scale)
     alpha = parse_alpha(alpha)
-    if isinstance(initial, str) and initial not in ("zero", "umpa"):
-        raise ValueError(f"unknown initial {initial!r}: choose 'zero', 'umpa' or pass psi")
-    if not isinstance(initial, str) and tuple(initial.shape) != tuple(y.shape):
-        raise ValueError(f"initial psi has shape {tuple(initial.shape)}, the image {tuple(y.shape)}")
-    if restart not in solver.RESTARTS:
-        raise ValueError(f"unknown restart {restart!r}: choose one of {', '.join(solver.RESTARTS)}")
+    _check_start(initial, y.shape, restart)
     check_diffuser_drift(diffuser_drift)
     field_upsample = check_field_upsample(field_upsample)
     # spikes: the reference is repaired (the diffuser estimate needs every pixel), the
@@ -612,41 +593,24 @@ def retrieve_projection(
     ref, ref_outliers = repair_outliers(ref, outlier_sigma)
     y, outliers = repair_outliers(y, outlier_sigma)
     n_outliers = int(outliers.sum())
-    wavelength = optics.wavelength_m(energy_eV)
-    calibrated = coherence_length_x_m is None or coherence_length_y_m is None
-    coherence_fit = None
-    if calibrated:
-        coherence_fit = calibration.fit_coherence_lengths(
-            ref,
-            pixel_size_m,
-            energy_eV=energy_eV,
-            diffuser_detector_distance_m=diffuser_detector_distance_m + diffuser_upstream_m,
-            diffuser_material=diffuser_material,
-            method=coherence_method,
-        )
-        if coherence_length_x_m is None:
-            coherence_length_x_m = coherence_fit.x_m
-        if coherence_length_y_m is None:
-            coherence_length_y_m = coherence_fit.y_m
-    if coherence_fit is not None:
-        coherence_includes_pixel_blur = coherence_fit.includes_pixel_blur
-    # the source's lengths (given, or the template fit's) leave the pixel's own blur to the model
-    pixel_integration = not coherence_includes_pixel_blur
+    coherence = _coherence(
+        ref,
+        geometry,
+        coherence_length_x_m,
+        coherence_length_y_m,
+        coherence_method,
+        coherence_includes_pixel_blur,
+        diffuser_material,
+    )
+    cx, cy = coherence.x_m, coherence.y_m
     if pad == "auto":
-        pad = auto_pad(
-            pixel_size_m,
-            wavelength,
-            diffuser_detector_distance_m + diffuser_upstream_m,
-            coherence_length_x_m,
-            coherence_length_y_m,
-        )
+        pad = auto_pad(pixel_size_m, geometry.wavelength_m, geometry.speckle_distance_m, cx, cy)
     if upsample == "auto":
-        upsample = auto_upsample(pixel_size_m, coherence_length_x_m, coherence_length_y_m)
+        upsample = auto_upsample(pixel_size_m, cx, cy)
     pad, upsample = int(pad), int(upsample)
     rdt = np.float32 if precision == "single" else np.float64
     fft = FFT.for_module(xp, fft_workers)
-    ny, nx = y.shape
-    shape = computational_shape((ny, nx), pad)
+    shape = computational_shape(y.shape, pad)
     scale = float(xp.mean(ref))
     if not scale > 0:
         raise ValueError("reference has zero mean intensity")
@@ -657,15 +621,15 @@ def retrieve_projection(
             energy_eV=energy_eV,
             pixel_size_m=pixel_size_m,
             diffuser_detector_distance_m=diffuser_detector_distance_m,
-            coherence_length_x_m=coherence_length_x_m,
-            coherence_length_y_m=coherence_length_y_m,
+            coherence_length_x_m=cx,
+            coherence_length_y_m=cy,
             pad=pad,
             diffuser_model=diffuser_model,
             diffuser_material=diffuser_material,
             diffuser_beta_over_delta=diffuser_beta_over_delta,
             diffuser_refine_iter=diffuser_refine_iter,
             phase_screen_iter=phase_screen_iter,
-            diffuser_upstream_m=diffuser_upstream_m,
+            diffuser_upstream_m=geometry.diffuser_upstream_m,
             fft_workers=fft.workers,
         )
     else:
@@ -683,14 +647,14 @@ def retrieve_projection(
     build = partial(
         solver.build_model,
         t,
-        frame_shape=(ny, nx),
+        frame_shape=y.shape,
         pixel_size_m=pixel_size_m,
-        wavelength=wavelength,
+        wavelength=geometry.wavelength_m,
         sample_diffuser_distance_m=sample_diffuser_distance_m,
         diffuser_detector_distance_m=diffuser_detector_distance_m,
-        coherence_length_x_m=coherence_length_x_m,
-        coherence_length_y_m=coherence_length_y_m,
-        pixel_integration=pixel_integration,
+        coherence_length_x_m=cx,
+        coherence_length_y_m=cy,
+        pixel_integration=coherence.pixel_integration,
         gamma=gamma,
         alpha=solver.PAPER_ALPHA if alpha == "discrepancy" else alpha,  # each rung rebuilds it
         use_preconditioner=preconditioner,
@@ -702,15 +666,8 @@ def retrieve_projection(
         bad_pixels=excluded,
         fft=fft,
     )
-    auto_field = field_upsample == "auto"
-    aliasing = diffuser_aliasing(t, fft) if auto_field else None
-    if auto_field:
-        first_field = auto_field_upsample(pixel_size_m, coherence_length_x_m, coherence_length_y_m)
-        if aliasing > DIFFUSER_ALIASING_FRACTION:
-            first_field = max(first_field, DIFFUSER_FIELD_UPSAMPLE)
-    else:
-        first_field = field_upsample
-    model = build(field_upsample=first_field)
+    grid = _first_field_grid(field_upsample, t, pixel_size_m, cx, cy, fft)
+    model = build(field_upsample=grid.field_upsample)
     y_full = xp.zeros(shape, dtype=rdt)
     y_full[model.frame] = y / scale
     # a UMPA start follows the drift measured above rather than measuring it again
@@ -729,33 +686,8 @@ def retrieve_projection(
         rtol=rtol,
         jtol=jtol,
     )
-    alpha_trials = None
-    if alpha == "discrepancy":
-        noise_pct = calibration.photon_noise_pct(to_numpy(y), scale)
-
-        def solve(a, start):
-            trial = build(field_upsample=first_field, alpha=a)
-            sol = run(trial, psi0=psi0 if start is None else start)
-            return sol, residual_rmse_pct(sol, trial, excluded)
-
-        choice = solver.discrepancy_alpha(solve, noise_pct)
-        alpha, sol, alpha_trials = choice.alpha, choice.result, choice.trials
-        model = build(field_upsample=first_field, alpha=alpha)
-    else:
-        sol = run(model, psi0=psi0)
-    # only "auto" needs the statistic: a smoothing pass and a percentile over the frame
-    gradient = phase_gradient_rad_per_px(sol.psi[model.frame].imag) if auto_field else None
-    iterations, history = sol.iterations, list(sol.objective_history)
-    restarts, backtracks = sol.restarts, sol.backtracks
-    diffuser_aliases = auto_field and aliasing > DIFFUSER_ALIASING_FRACTION
-    if auto_field and gradient > field_gradient_limit(first_field, diffuser_aliases):
-        # the model's grid aliases such gradients: go on from its psi on a grid twice as fine
-        model = build(field_upsample=2 * first_field)
-        sol = run(model, psi0=sol.psi)
-        iterations += sol.iterations
-        history += list(sol.objective_history)
-        restarts, backtracks = restarts + sol.restarts, backtracks + sol.backtracks
-    psi = sol.psi[model.frame]
+    solved = _solve(build, run, model, grid, alpha, psi0, y, scale, excluded)
+    psi = solved.sol.psi[solved.model.frame]
     phase = to_numpy(psi.imag).astype(np.float64)
     attenuation = -to_numpy(psi.real).astype(np.float64)
     mask = None
@@ -768,18 +700,18 @@ def retrieve_projection(
         fit = mask if not moved else mask & ~to_numpy(unseen)  # the strips' psi is the regularizer's guess
         phase = bg.zero_background(phase, fit)
         attenuation = bg.zero_background(attenuation, fit)
-    res = to_numpy(xp.abs(sol.evaluation.r[model.frame])) * 100.0
+    res = to_numpy(xp.abs(solved.sol.evaluation.r[solved.model.frame])) * 100.0
     params = {
         "method": method,
         "gamma": gamma,
-        "alpha": str(complex(alpha)).strip("()"),
-        "alpha_rule": "discrepancy" if alpha_trials else "given",
-        "alpha_trials": [[str(a).strip("()"), round(r, 4), n] for a, r, n in alpha_trials or []],
+        "alpha": str(complex(solved.alpha)).strip("()"),
+        "alpha_rule": "discrepancy" if solved.alpha_trials else "given",
+        "alpha_trials": [[str(a).strip("()"), round(r, 4), n] for a, r, n in solved.alpha_trials or []],
         "step": step,
         "step_search": step_search,
         "restart": restart,
-        "phase_scale": model.phase_scale,
-        "step_final": sol.step,
+        "phase_scale": solved.model.phase_scale,
+        "step_final": solved.sol.step,
         "tol": tol,
         "max_iter": max_iter,
         "min_iter": min_iter,
@@ -790,25 +722,21 @@ def retrieve_projection(
         "precision": precision,
         "normalization": normalization,
         "upsample": upsample,
-        "field_upsample": model.field_upsample,
+        "field_upsample": solved.model.field_upsample,
         "field_upsample_requested": field_upsample,
-        "phase_gradient_rad_per_px": gradient,
-        "diffuser_aliasing": aliasing,
+        "phase_gradient_rad_per_px": solved.gradient,
+        "diffuser_aliasing": grid.aliasing,
         "initial": initial if isinstance(initial, str) else "array",
         "pad": pad,
-        "coherence_calibrated": calibrated,
-        "coherence_method": coherence_fit.method if coherence_fit else "given",
-        "coherence_template": coherence_fit.template if coherence_fit else "",
-        "coherence_grain_radius_m": coherence_fit.grain_radius_m if coherence_fit else None,
-        "pixel_integration": pixel_integration,
+        **coherence.parameters(),
         "diffuser_model": diffuser_model,
         "diffuser_given": diffuser is not None,
         "diffuser_beta_over_delta": kappa,
         "diffuser_refine_iter": diffuser_refine_iter,
-        "diffuser_upstream_m": float(diffuser_upstream_m),
-        "restarts": restarts,
-        "backtracks": backtracks,
-        "stop_reason": sol.stop_reason,
+        "diffuser_upstream_m": geometry.diffuser_upstream_m,
+        "restarts": solved.restarts,
+        "backtracks": solved.backtracks,
+        "stop_reason": solved.sol.stop_reason,
         "outlier_sigma": outlier_sigma,
         "outlier_pixels": n_outliers,
         "outlier_pixels_reference": int(ref_outliers.sum()),
@@ -819,16 +747,159 @@ def retrieve_projection(
     return RetrievalResult(
         phase=xp.asarray(phase.astype(rdt)),
         attenuation=xp.asarray(attenuation.astype(rdt)),
-        iterations=iterations,
-        converged=sol.converged,
+        iterations=solved.iterations,
+        converged=solved.sol.converged,
         residual=xp.asarray(res.astype(rdt)),
-        residual_rmse=residual_rmse_pct(sol, model, excluded),
-        loss_history=history,
-        coherence_length_x_m=float(coherence_length_x_m),
-        coherence_length_y_m=float(coherence_length_y_m),
+        residual_rmse=residual_rmse_pct(solved.sol, solved.model, excluded),
+        loss_history=solved.history,
+        coherence_length_x_m=float(cx),
+        coherence_length_y_m=float(cy),
         parameters=params,
         background=mask,
     )
+
+
+def _check_pair(sample, reference, xp):
+    """The sample and reference images, each checked, of one shape."""
+    y = _check_image("sample", sample, xp)
+    ref = _check_image("reference", reference, xp)
+    if y.shape != ref.shape:
+        raise ValueError(f"sample {y.shape} and reference {ref.shape} differ in shape")
+    return y, ref
+
+
+def _check_start(initial, image_shape: tuple[int, int], restart: str) -> None:
+    """psi_0 ("zero", "umpa" or an array of the image's shape) and the Nesterov restart rule."""
+    if isinstance(initial, str) and initial not in ("zero", "umpa"):
+        raise ValueError(f"unknown initial {initial!r}: choose 'zero', 'umpa' or pass psi")
+    if not isinstance(initial, str) and tuple(initial.shape) != tuple(image_shape):
+        raise ValueError(f"initial psi has shape {tuple(initial.shape)}, the image {tuple(image_shape)}")
+    if restart not in solver.RESTARTS:
+        raise ValueError(f"unknown restart {restart!r}: choose one of {', '.join(solver.RESTARTS)}")
+
+
+@dataclass(frozen=True)
+class _Coherence:
+    """The coherence lengths the model uses and where they came from."""
+
+    x_m: float
+    y_m: float
+    fit: Any  # calibration.CoherenceFit, None where both lengths were given
+    pixel_integration: bool
+
+    def parameters(self) -> dict:
+        fit = self.fit
+        return {
+            "coherence_calibrated": fit is not None,
+            "coherence_method": fit.method if fit else "given",
+            "coherence_template": fit.template if fit else "",
+            "coherence_grain_radius_m": fit.grain_radius_m if fit else None,
+            "pixel_integration": self.pixel_integration,
+        }
+
+
+def _coherence(ref, geometry: Geometry, x_m, y_m, method, includes_pixel_blur, diffuser_material) -> _Coherence:
+    """The given lengths, or those calibrated on the reference speckle (Methods, "IOTF")
+    for each one not given."""
+    fit = None
+    if x_m is None or y_m is None:
+        fit = calibration.fit_coherence_lengths(
+            ref,
+            geometry.pixel_size_m,
+            energy_eV=geometry.energy_eV,
+            diffuser_detector_distance_m=geometry.speckle_distance_m,
+            diffuser_material=diffuser_material,
+            method=method,
+        )
+        x_m = fit.x_m if x_m is None else x_m
+        y_m = fit.y_m if y_m is None else y_m
+        includes_pixel_blur = fit.includes_pixel_blur
+    # the source's lengths (given, or the template fit's) leave the pixel's own blur to the model
+    return _Coherence(x_m, y_m, fit, pixel_integration=not includes_pixel_blur)
+
+
+@dataclass(frozen=True)
+class _FieldGrid:
+    """The field grid the solver starts on, and what ``"auto"`` measured to choose it."""
+
+    field_upsample: float
+    auto: bool
+    aliasing: float | None  # diffuser_aliasing(t), measured for "auto" only
+
+    @property
+    def diffuser_aliases(self) -> bool:
+        return self.auto and self.aliasing > DIFFUSER_ALIASING_FRACTION
+
+
+def _first_field_grid(field_upsample, t, pixel_size_m: float, cx: float, cy: float, fft: FFT) -> _FieldGrid:
+    """The given factor, or for "auto" the coherence's (:func:`auto_field_upsample`), at
+    least :data:`DIFFUSER_FIELD_UPSAMPLE` where the diffuser aliases on the detector grid."""
+    if field_upsample != "auto":
+        return _FieldGrid(field_upsample, auto=False, aliasing=None)
+    aliasing = diffuser_aliasing(t, fft)
+    first = auto_field_upsample(pixel_size_m, cx, cy)
+    if aliasing > DIFFUSER_ALIASING_FRACTION:
+        first = max(first, DIFFUSER_FIELD_UPSAMPLE)
+    return _FieldGrid(first, auto=True, aliasing=aliasing)
+
+
+@dataclass
+class _Solved:
+    """The solver's run on the final model, with totals over every leg that led to it."""
+
+    model: Any
+    sol: Any
+    alpha: complex
+    alpha_trials: list | None
+    grid: _FieldGrid
+    gradient: float | None
+    iterations: int
+    history: list[float]
+    restarts: int
+    backtracks: int
+
+
+def _solve(build, run, model, grid: _FieldGrid, alpha, psi0, y, scale: float, excluded) -> _Solved:
+    """Algorithm S1 on the first field grid (with ``alpha`` chosen by the discrepancy rule
+    where asked), then, for ``field_upsample="auto"``, on a grid twice as fine from its psi
+    where the solution's phase gradients alias on the first (:func:`field_gradient_limit`)."""
+    trials = None
+    if alpha == "discrepancy":
+        noise_pct = calibration.photon_noise_pct(to_numpy(y), scale)
+
+        def solve(a, start):
+            trial = build(field_upsample=grid.field_upsample, alpha=a)
+            sol = run(trial, psi0=psi0 if start is None else start)
+            return sol, residual_rmse_pct(sol, trial, excluded)
+
+        choice = solver.discrepancy_alpha(solve, noise_pct)
+        alpha, sol, trials = choice.alpha, choice.result, choice.trials
+        model = build(field_upsample=grid.field_upsample, alpha=alpha)
+    else:
+        sol = run(model, psi0=psi0)
+    # only "auto" needs the statistic: a smoothing pass and a percentile over the frame
+    gradient = phase_gradient_rad_per_px(sol.psi[model.frame].imag) if grid.auto else None
+    solved = _Solved(
+        model,
+        sol,
+        alpha,
+        trials,
+        grid,
+        gradient,
+        sol.iterations,
+        list(sol.objective_history),
+        sol.restarts,
+        sol.backtracks,
+    )
+    if grid.auto and gradient > field_gradient_limit(grid.field_upsample, grid.diffuser_aliases):
+        model = build(field_upsample=2 * grid.field_upsample)
+        sol = run(model, psi0=sol.psi)
+        solved.model, solved.sol = model, sol
+        solved.iterations += sol.iterations
+        solved.history += list(sol.objective_history)
+        solved.restarts += sol.restarts
+        solved.backtracks += sol.backtracks
+    return solved
 
 
 def retrieve_tracking(

@@ -152,7 +152,7 @@ def test_a_kill_during_creation_leaves_no_store_and_the_rerun_is_whole(
 
     scan, _ = finished
     recon = tmp_path / "recon.zarr"
-    create, build, calls = scan_io._create, scan_io._build_reconstruction, [0]
+    create, build, calls = scan_io.create_variable, scan_io._build_reconstruction, [0]
 
     def killed_create(*args, **kwargs):
         calls[0] += 1
@@ -167,7 +167,7 @@ def test_a_kill_during_creation_leaves_no_store_and_the_rerun_is_whole(
     if kill_at == "attributes":
         monkeypatch.setattr(scan_io, "_build_reconstruction", killed_after_build)
     else:
-        monkeypatch.setattr(scan_io, "_create", killed_create)
+        monkeypatch.setattr(scan_io, "create_variable", killed_create)
     with pytest.raises(KeyboardInterrupt):
         workflow.run_scan(scan, recon, max_iter=15)
     assert not recon.exists()
@@ -208,7 +208,7 @@ def _set_attr(name, value):
 
 def _complex(g):
     data = g["projections"][...]
-    scan_io._create(
+    scan_io.create_variable(
         g,
         "projections",
         data.shape,

@@ -90,3 +90,36 @@ def test_regularization_window_and_preconditioner():
     assert p[0, 1] == pytest.approx(1 / (1 / 32) ** 2)
     q2 = u**2 + v**2
     assert np.allclose(p[q2 > 0] * q2[q2 > 0], 1)
+
+
+def test_geometry_is_validated_once_with_the_same_one_line_messages_everywhere():
+    from pwf_dask import retrieve_projection
+    from pwf_dask.physics.geometry import Geometry
+
+    g = Geometry(10_000, 0.65e-6, 0.0, 20e-3, diffuser_upstream_m=0.5)
+    assert g.wavelength_m == pytest.approx(1.2398e-10, rel=1e-4)
+    assert g.speckle_distance_m == pytest.approx(0.52)
+    assert g.keywords() == {
+        "energy_eV": 10_000.0,
+        "pixel_size_m": 0.65e-6,
+        "sample_diffuser_distance_m": 0.0,
+        "diffuser_detector_distance_m": 20e-3,
+        "diffuser_upstream_m": 0.5,
+    }
+    assert "diffuser_upstream_m" not in Geometry(10_000, 0.65e-6, 3e-3, 20e-3).keywords()
+    bad = [
+        (dict(pixel_size_m=-1e-6), "pixel_size_m must be positive, got -1e-06"),
+        (dict(sample_diffuser_distance_m=-1e-3), "sample_diffuser_distance_m must be >= 0"),
+        (dict(energy_eV=10.0), "energy_eV = 10 is outside"),  # keV for eV
+        (dict(energy_eV="ten"), "energy_eV must be a number"),
+        (dict(diffuser_upstream_m=0.1), "needs sample_diffuser_distance_m = 0"),
+    ]
+    good = dict(
+        energy_eV=10_000, pixel_size_m=0.65e-6, sample_diffuser_distance_m=3e-3, diffuser_detector_distance_m=0.02
+    )
+    image = np.ones((16, 16))
+    for change, message in bad:
+        with pytest.raises(ValueError, match=message):
+            Geometry(**{**good, **change})
+        with pytest.raises(ValueError, match=message):
+            retrieve_projection(image, image, **{**good, **change})

@@ -287,7 +287,7 @@ def test_a_known_upstream_distance_lowers_the_error(seed):
         (dict(sample=np.full((64, 64), np.nan)), "non-finite"),
         (dict(reference=-np.ones((64, 64))), "negative"),
         (dict(sample=np.ones(64)), "2-D"),
-        (dict(diffuser_detector_distance_m=0.0), "distances"),
+        (dict(diffuser_detector_distance_m=0.0), "diffuser_detector_distance_m must be positive"),
         (dict(method="magic"), "unknown method"),
         (dict(initial="random"), "unknown initial"),
         (dict(restart="sometimes"), "unknown restart"),

@@ -322,7 +322,7 @@ def test_large_arrays_are_recycled_unless_switched_off():
 @pytest.mark.parametrize("l1", [3e-3, 0.0])
 def test_direction_equals_algorithm_s2_as_printed(rng, l1):
     """The solver's fused, real-FFT direction is Algorithm S2 transcribed line by line."""
-    from benchmarks.algorithm_s1 import algorithm_s1_direction, algorithm_s1_inputs
+    from algorithm_s1 import algorithm_s1_direction, algorithm_s1_inputs
 
     model, y = make_model(rng, l1=l1)
     psi = 0.1 * (rng.normal(size=model.shape) + 1j * rng.normal(size=model.shape))

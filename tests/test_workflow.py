@@ -67,6 +67,25 @@ def test_contract_layout(tiny_scan, tmp_path):
     assert ds["phase"].encoding["chunks"][3] == ds.sizes["x"]
 
 
+def test_fsc_compares_a_central_sub_volume_of_a_large_scan(tiny_scan, tmp_path, monkeypatch):
+    """Issue #29: the FSC's half-tomograms are made in the client; beyond FSC_MAX_ROWS rows or
+    FSC_MAX_PX pixels across only the central sub-volume is compared (here 16 x 40 x 40 of 32 x
+    64 x 64), so its memory is bounded whatever the scan; within the bounds, the whole."""
+    from pwf_dask.tomo import fsc
+
+    assert workflow.fsc_region(32, 64) == (slice(0, 32), slice(0, 64))
+    monkeypatch.setattr(workflow, "FSC_MAX_ROWS", 16)
+    monkeypatch.setattr(workflow, "FSC_MAX_PX", 40)
+    assert workflow.fsc_region(32, 64) == (slice(8, 24), slice(12, 52))
+    recon = tmp_path / "r.zarr"
+    workflow.run_scan(tiny_scan, recon, **FAST)
+    ds = xr.open_zarr(recon)
+    pix = ds.attrs["pixel_size_m"]
+    cube = np.random.default_rng(0).normal(size=(16, 40, 40))
+    np.testing.assert_allclose(ds["frequency"].values, fsc.fourier_shell_correlation(cube, cube, pix)[0])
+    assert np.isfinite(ds["fsc_delta"].values).all() and np.isfinite(ds["fsc_delta_truth"].values).all()
+
+
 @pytest.mark.parametrize("scheduler", ["processes", "local"])
 def test_schedulers_give_identical_results(tiny_scan, tmp_path, scheduler):
     ref = tmp_path / "threads.zarr"
@@ -258,11 +277,13 @@ def _broken(src, dst, how):
     elif how == "wrong dims":
         p = g["projections"][...]
         del g["projections"]
-        scan_io._create(g, "projections", p.shape[1:], (1,) + p.shape[2:], ("angle", "y", "x"), p.dtype, 0, p[0])
+        scan_io.create_variable(
+            g, "projections", p.shape[1:], (1,) + p.shape[2:], ("angle", "y", "x"), p.dtype, 0, p[0]
+        )
     elif how == "reference shape":
         r = g["reference"][...][:, :-2]
         del g["reference"]
-        scan_io._create(g, "reference", r.shape, r.shape, ("position", "y", "x"), r.dtype, 0, r)
+        scan_io.create_variable(g, "reference", r.shape, r.shape, ("position", "y", "x"), r.dtype, 0, r)
     elif how == "negative":
         g["projections"][0, 0, 0, 0] = 0  # below the dark level: negative after correction
     elif how == "distance":
@@ -271,7 +292,7 @@ def _broken(src, dst, how):
         f = g["flat"][...].astype("float32")
         del g["flat"]
         f[3, 3] = np.nan
-        scan_io._create(g, "flat", f.shape, f.shape, ("y", "x"), "float32", 0, f)
+        scan_io.create_variable(g, "flat", f.shape, f.shape, ("y", "x"), "float32", 0, f)
     scan_io.consolidate(dst)
     return dst
 

@@ -175,7 +175,11 @@ def estimate_scan(
 
 def _fsc_stage(ny: int, nx: int, n_angles: int, n_positions: int, speeds: Speeds) -> StageEstimate:
     """K >= 2: two stored tomograms at a time; K = 1: the even and odd half-scans are
-    reconstructed whole, in the driver, before their FSC."""
+    reconstructed in the driver before their FSC. Either on at most the central
+    :data:`pwf_dask.pipeline.workflow.FSC_MAX_ROWS` rows."""
+    from pwf_dask.pipeline.workflow import FSC_MAX_ROWS
+
+    ny = min(ny, FSC_MAX_ROWS)
     voxels = ny * nx * nx
     ffts = 2 * speeds.fft_s * voxels * np.log2(voxels) / (nx * nx * np.log2(nx * nx)) / 2  # two real 3-D FFTs
     if n_positions >= 2:
@@ -185,7 +189,9 @@ def _fsc_stage(ny: int, nx: int, n_angles: int, n_positions: int, speeds: Speeds
         )
     fbp = 2 * 2 * speeds.slice_s(n_angles // 2) * ny  # both halves, phase and attenuation
     peak = tomo_peak_mb(n_angles // 2, ny, nx, speeds.fbp) + fsc_peak_mb(ny, nx)
-    return StageEstimate("fsc", 1, WORKER_BASE_MB + peak, fbp + ffts, "in the driver: even/odd half-scans, whole")
+    return StageEstimate(
+        "fsc", 1, WORKER_BASE_MB + peak, fbp + ffts, f"in the driver: even/odd half-scans, central {ny} rows"
+    )
 
 
 def format_estimate(stages: list[StageEstimate], workers: int, memory_mb: float | None = None) -> list[str]:

@@ -164,7 +164,7 @@ def _fit_diffusers(runner, recon_path: str, positions: list[int], **task) -> dic
     if DIFFUSER_ARRAY not in g or g[DIFFUSER_ARRAY].shape[1:3] != shape:
         n = g["phase"].shape[0]
         dims = ("position", "diffuser_y", "diffuser_x", "re_im")
-        scan_io._create(g, DIFFUSER_ARRAY, (n, *shape, 2), (1, *shape, 2), dims, "float32", np.nan)
+        scan_io.create_variable(g, DIFFUSER_ARRAY, (n, *shape, 2), (1, *shape, 2), dims, "float32", np.nan)
     for p, t, _ in fitted:
         pair = np.full((*shape, 2), np.nan, dtype=np.float32)
         pair[: t.shape[0], : t.shape[1], 0], pair[: t.shape[0], : t.shape[1], 1] = t.real, t.imag
@@ -787,11 +787,13 @@ def _create_tomograms(g, center_m: float, estimated: bool, fbp: str = "backproje
     npos, _, ny, nx = g["phase"].shape
     rb = g["phase"].chunks[2]
     coords = (np.arange(nx) - (nx - 1) / 2) * float(g.attrs["pixel_size_m"])
-    scan_io._create(g, "v", (nx,), (nx,), ("v",), "float64", 0.0, coords)
-    scan_io._create(g, "u", (nx,), (nx,), ("u",), "float64", 0.0, coords)
+    scan_io.create_variable(g, "v", (nx,), (nx,), ("v",), "float64", 0.0, coords)
+    scan_io.create_variable(g, "u", (nx,), (nx,), ("u",), "float64", 0.0, coords)
     for name in ("delta", "beta"):
-        scan_io._create(g, name, (npos, ny, nx, nx), (1, rb, nx, nx), ("position", "y", "v", "u"), "float32", np.nan)
-    scan_io._create(g, "tomo_done", (npos, -(-ny // rb)), (1, 1), ("position", "row_block"), "int8", 0)
+        scan_io.create_variable(
+            g, name, (npos, ny, nx, nx), (1, rb, nx, nx), ("position", "y", "v", "u"), "float32", np.nan
+        )
+    scan_io.create_variable(g, "tomo_done", (npos, -(-ny // rb)), (1, 1), ("position", "row_block"), "int8", 0)
     g.attrs.update(
         {
             "rotation_center_m": center_m,
@@ -823,16 +825,57 @@ def _verified_blocks(runner, path: str, g) -> np.ndarray:
 # --- FSC --------------------------------------------------------------------------------
 
 
-def _even_odd_volumes(path, g, name, p, center_m, wl, sign):
+#: The FSC stage compares a central sub-volume of at most this many rows (y) and pixels across
+#: (v and u). Both half-tomograms of a K = 1 scan are made in the client: whole, 801 x 32 x 2560
+#: took 11.5 GB, and a paper-size 2160-row scan would need ~0.8 TB (issue #29). Only rows are
+#: cut for a camera's width: the even/odd halves share the diffuser's fixed-pattern errors,
+#: which back-project to rings, strongest at the centre, so a central 1024^2 crop of that scan
+#: read 1.4 µm (the Nyquist limit) against 5.7 µm for whole slices. Scans within the bounds are
+#: compared whole; a cut axis is tapered (:func:`_sub_volume_fsc`).
+FSC_MAX_ROWS = 64
+FSC_MAX_PX = 4096
+#: rows of full slices reconstructed at a time before the crop (8 x 2560^2 doubles: 420 MB)
+_FSC_BLOCK_ROWS = 8
+
+
+def fsc_region(n_rows: int, n_px: int) -> tuple[slice, slice]:
+    """(rows, pixels) of the central FSC sub-volume (:data:`FSC_MAX_ROWS`, :data:`FSC_MAX_PX`)."""
+    r, c = min(n_rows, FSC_MAX_ROWS), min(n_px, FSC_MAX_PX)
+    return slice((n_rows - r) // 2, (n_rows - r) // 2 + r), slice((n_px - c) // 2, (n_px - c) // 2 + c)
+
+
+def _sub_volume_fsc(a, b, pix: float, full_shape: tuple[int, int, int]):
+    """Eq. (FSC) of two sub-volumes; an axis cut out of a larger volume is tapered first (a
+    Tukey window, 10 % each side, the same on both), else the cut's sharp edges, the same in
+    both volumes, correlate at every frequency (measured: 1.4 µm, the Nyquist limit, on the
+    801 x 32 x 2560 scan cut to 1024^2 without the taper)."""
+    from scipy.signal.windows import tukey
+
+    for axis, (n, whole) in enumerate(zip(np.shape(a), full_shape)):
+        if n < whole:
+            w = tukey(n, 0.2).reshape([-1 if k == axis else 1 for k in range(len(full_shape))])
+            a, b = a * w, b * w
+    return fsc.fourier_shell_correlation(a, b, pix)
+
+
+def _even_odd_volumes(path, g, name, p, center_m, wl, sign, rows: slice, px: slice):
+    """delta (or beta) from the even and the odd angles alone, on the FSC sub-volume; each
+    block of full slices is reconstructed and background-corrected before the crop."""
     angles = g["angle"][...]
     order = np.argsort(angles)
     halves = (np.sort(order[0::2]), np.sort(order[1::2]))
     pix = float(g.attrs["pixel_size_m"])
+    sino = integrity.read_checked(path, g[name], name, (p, slice(None), rows))
     vols = []
     for idx in halves:
-        sino = integrity.read_checked(path, g[name], name, p)[idx]
-        vol = tomography.back_projection(sino, angles[idx], pix, center_m, method=g.attrs.get("fbp", "backproject"))
-        vols.append(tomography.remove_background(sign * wl / (2 * np.pi) * vol))
+        blocks = []
+        for start in range(0, sino.shape[1], _FSC_BLOCK_ROWS):
+            block = sino[idx, start : start + _FSC_BLOCK_ROWS]
+            vol = tomography.back_projection(
+                block, angles[idx], pix, center_m, method=g.attrs.get("fbp", "backproject")
+            )
+            blocks.append(tomography.remove_background(sign * wl / (2 * np.pi) * vol)[:, px, px].astype(np.float32))
+        vols.append(np.concatenate(blocks))
     return vols
 
 
@@ -858,6 +901,7 @@ def fsc_scan(recon_path, *, split: str = "auto", criterion: str = "1/4", pairs: 
     pix = float(g.attrs["pixel_size_m"])
     wl = wavelength_m(float(g.attrs["energy_eV"]))
     center = float(g.attrs["rotation_center_m"])
+    rows, px = fsc_region(g["delta"].shape[1], g["delta"].shape[2])
     t0 = time.perf_counter()
     curves: dict[str, list] = {"delta": [], "beta": []}
     labels = []
@@ -871,28 +915,30 @@ def fsc_scan(recon_path, *, split: str = "auto", criterion: str = "1/4", pairs: 
         )
         for i, j in chosen:
             for name in ("delta", "beta"):
-                vi, vj = (integrity.read_checked(path, g[name], name, k) for k in (i, j))
-                f, c, n = fsc.fourier_shell_correlation(vi, vj, pix)
+                vi, vj = (integrity.read_checked(path, g[name], name, (k, rows, px, px)) for k in (i, j))
+                f, c, n = _sub_volume_fsc(vi, vj, pix, g["delta"].shape[1:])
                 curves[name].append(c)
             labels.append(f"positions {i}-{j}")
     elif split == "even-odd":
         for p in range(npos):
             for name, src, sign in (("delta", "phase", -1.0), ("beta", "attenuation", 1.0)):
-                a, b = _even_odd_volumes(path, g, src, p, center, wl, sign)
-                f, c, n = fsc.fourier_shell_correlation(a, b, pix)
+                a, b = _even_odd_volumes(path, g, src, p, center, wl, sign, rows, px)
+                f, c, n = _sub_volume_fsc(a, b, pix, g["delta"].shape[1:])
                 curves[name].append(c)
             labels.append(f"position {p} even-odd angles")
     else:
         raise ValueError(f"unknown FSC split {split!r}: use positions or even-odd")
     nf = len(f)
-    scan_io._create(g, "split", (len(labels),), (len(labels),), ("split",), "int64", 0, np.arange(len(labels)))
-    scan_io._create(g, "frequency", (nf,), (nf,), ("frequency",), "float64", 0.0, f)
+    scan_io.create_variable(g, "split", (len(labels),), (len(labels),), ("split",), "int64", 0, np.arange(len(labels)))
+    scan_io.create_variable(g, "frequency", (nf,), (nf,), ("frequency",), "float64", 0.0, f)
     summary = {"split": split, "labels": labels}
     for name in ("delta", "beta"):
         arr = np.array(curves[name])
         mean = arr.mean(axis=0)
         res = {c: fsc.resolution(f, mean, n, c) for c in ("1/4", "1/7", "half-bit")}
-        a = scan_io._create(g, f"fsc_{name}", arr.shape, arr.shape, ("split", "frequency"), "float64", np.nan, arr)
+        a = scan_io.create_variable(
+            g, f"fsc_{name}", arr.shape, arr.shape, ("split", "frequency"), "float64", np.nan, arr
+        )
         a.attrs.update(
             {
                 "criterion": criterion,
@@ -906,28 +952,29 @@ def fsc_scan(recon_path, *, split: str = "auto", criterion: str = "1/4", pairs: 
         )
         summary[name] = res[criterion]
     if "simulation_phantom" in g.attrs:
-        summary.update(_fsc_truth(g, f, pix))
+        summary.update(_fsc_truth(g, f, pix, rows, px))
     g.attrs["fsc_wall_s"] = time.perf_counter() - t0
     scan_io.consolidate(path)
     return summary
 
 
-def _fsc_truth(g, freq, pix) -> dict:
-    """FSC of each position's tomograms against the simulated truth (criterion 1/2)."""
+def _fsc_truth(g, freq, pix, rows: slice, px: slice) -> dict:
+    """FSC of each position's tomograms against the simulated truth (criterion 1/2), on the
+    FSC sub-volume."""
     from pwf_dask.simulation import phantom_from_json, refractive_index_volume
 
     phantom = phantom_from_json(g.attrs["simulation_phantom"])
-    truth = refractive_index_volume(phantom, g["y"][...], g["v"][...], g["u"][...], float(g.attrs["energy_eV"]))
+    truth = refractive_index_volume(phantom, g["y"][rows], g["v"][px], g["u"][px], float(g.attrs["energy_eV"]))
     npos = g["delta"].shape[0]
     out = {}
     for name, t in zip(("delta", "beta"), truth):
-        rows = []
+        curves = []
         for p in range(npos):
-            f, c, n = fsc.fourier_shell_correlation(g[name][p], t, pix)
-            rows.append(c)
-        arr = np.array(rows)
+            f, c, n = _sub_volume_fsc(g[name][p, rows, px, px], t, pix, g["delta"].shape[1:])
+            curves.append(c)
+        arr = np.array(curves)
         res = fsc.resolution(f, arr.mean(axis=0), n, "1/2")
-        a = scan_io._create(
+        a = scan_io.create_variable(
             g, f"fsc_{name}_truth", arr.shape, arr.shape, ("position", "frequency"), "float64", np.nan, arr
         )
         a.attrs.update({"criterion": "1/2", "resolution_m": res})

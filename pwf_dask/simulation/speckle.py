@@ -27,16 +27,13 @@ import numpy as np
 from pwf_dask.backend import FFT
 from pwf_dask.calibration import shift_transmission
 from pwf_dask.physics import diffusers, optics
+from pwf_dask.physics.geometry import GEOMETRY_KEYS
 from pwf_dask.physics.materials import delta_beta
 from pwf_dask.simulation.phantoms import Phantom, default_phantom
 
 
 def _geometry(obj) -> dict:
     return {name: getattr(obj, name) for name in GEOMETRY_KEYS}
-
-
-#: what :func:`pwf_dask.retrieve_projection` must be told about a measurement
-GEOMETRY_KEYS = ("energy_eV", "pixel_size_m", "sample_diffuser_distance_m", "diffuser_detector_distance_m")
 
 
 @dataclass

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from pwf_dask.progress import Progress
-from pwf_dask.stores.scan_io import ScanError, _create, consolidate, correct, create_scan
+from pwf_dask.stores.scan_io import ScanError, consolidate, correct, create_scan, create_variable
 
 #: The DXchange layout (tomopy, dxchange): the defaults for an HDF5 file given alone.
 DXCHANGE = {
@@ -222,21 +222,12 @@ def ingest_scan(
     out = Path(out)
     if out.exists():
         raise ScanError(f"{out} already exists; ingest writes a new store and never overwrites one")
-    for name, value, positive in (
-        ("energy_eV", energy_eV, True),
-        ("pixel_size_m", pixel_size_m, True),
-        ("sample_diffuser_distance_m", sample_diffuser_distance_m, False),
-        ("diffuser_detector_distance_m", diffuser_detector_distance_m, True),
-    ):
-        v = float(value)
-        if not np.isfinite(v) or (v <= 0 if positive else v < 0):
-            raise ScanError(f"{name} must be {'positive' if positive else '>= 0'}, got {value}")
     try:
-        from pwf_dask.physics.optics import PLAUSIBLE_GEOMETRY, check_diffuser_upstream, check_plausible_geometry
+        from pwf_dask.physics.geometry import Geometry
+        from pwf_dask.physics.optics import check_plausible_geometry
 
-        check_diffuser_upstream(diffuser_upstream_m, float(sample_diffuser_distance_m))
-        # the parameters are named as the ranges are: every geometry value given, by its name
-        check_plausible_geometry(**{k: v for k, v in locals().items() if k in PLAUSIBLE_GEOMETRY})
+        Geometry(energy_eV, pixel_size_m, sample_diffuser_distance_m, diffuser_detector_distance_m, diffuser_upstream_m)
+        check_plausible_geometry(coherence_length_x_m=coherence_length_x_m, coherence_length_y_m=coherence_length_y_m)
     except ValueError as exc:
         raise ScanError(str(exc)) from None
     proj_specs = [projections] if isinstance(projections, str) else list(projections)
@@ -334,7 +325,7 @@ def ingest_scan(
         )
         for name, img in (("flat", flat_img), ("dark", dark_img)):
             if img is not None:
-                _create(g, name, shape, shape, ("y", "x"), dtype, 0, img)
+                create_variable(g, name, shape, shape, ("y", "x"), dtype, 0, img)
         for k, (src, idx, average) in enumerate(ref_frames):
             img = stored(src.mean(idx) if average else src.frame(k))
             check(f"reference {k}", img)

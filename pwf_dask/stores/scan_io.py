@@ -147,16 +147,6 @@ def open_scan(path: str | Path, check_values: bool = True):
         raise ScanError(f"{path}: all {nang} angles are {angles[0]:g} deg; a scan rotates the sample")
     attrs = dict(ds.attrs)
     vals = {name: _attr_float(attrs, name, path) for name in REQUIRED_ATTRS}
-    if vals["energy_eV"] <= 0:
-        raise ScanError(f"{path}: energy_eV must be positive, got {vals['energy_eV']}")
-    if vals["pixel_size_m"] <= 0:
-        raise ScanError(f"{path}: pixel_size_m must be positive, got {vals['pixel_size_m']}")
-    if vals["sample_diffuser_distance_m"] < 0:
-        raise ScanError(f"{path}: sample_diffuser_distance_m must be >= 0, got {vals['sample_diffuser_distance_m']}")
-    if vals["diffuser_detector_distance_m"] <= 0:
-        raise ScanError(
-            f"{path}: diffuser_detector_distance_m must be positive, got {vals['diffuser_detector_distance_m']}"
-        )
     upstream = _attr_float(attrs, "diffuser_upstream_m", path) if "diffuser_upstream_m" in attrs else 0.0
     coh = []
     for name in ("coherence_length_x_m", "coherence_length_y_m"):
@@ -168,12 +158,11 @@ def open_scan(path: str | Path, check_values: bool = True):
         else:
             coh.append(None)
     try:
-        from pwf_dask.physics.optics import check_diffuser_upstream, check_plausible_geometry
+        from pwf_dask.physics.geometry import Geometry
+        from pwf_dask.physics.optics import check_plausible_geometry
 
-        upstream = check_diffuser_upstream(upstream, vals["sample_diffuser_distance_m"])
-        check_plausible_geometry(
-            **vals, diffuser_upstream_m=upstream, coherence_length_x_m=coh[0], coherence_length_y_m=coh[1]
-        )
+        upstream = Geometry(**vals, diffuser_upstream_m=upstream).diffuser_upstream_m
+        check_plausible_geometry(coherence_length_x_m=coh[0], coherence_length_y_m=coh[1])
     except ValueError as exc:
         raise ScanError(f"{path}: {exc}") from None
     corrected = attrs.get("flat_dark_corrected", False)
@@ -328,7 +317,9 @@ VARIABLE_ATTRS: dict[str, tuple[str, str]] = {
 }
 
 
-def _create(group, name, shape, chunks, dims, dtype, fill, data=None):
+def create_variable(group, name, shape, chunks, dims, dtype, fill, data=None):
+    """A checksummed array ``name`` in ``group`` with its dimension names and, for a variable of
+    docs/scan-format.md, its units and long name (replacing any of that name); ``data`` fills it."""
     arr = group.create_array(
         name,
         shape=shape,
@@ -438,24 +429,26 @@ def _build_reconstruction(path: str, info: ScanInfo, params: dict) -> None:
     ny, nx = info.shape
     g = zarr.open_group(path, mode="w")
     rb = row_block(ny, nx)
-    _create(g, "position", (npos,), (npos,), ("position",), "int64", 0, np.arange(npos))
-    _create(g, "angle", (nang,), (nang,), ("angle",), "float64", 0.0, info.angles_deg)
-    _create(g, "y", (ny,), (ny,), ("y",), "float64", 0.0, info.y_m)
-    _create(g, "x", (nx,), (nx,), ("x",), "float64", 0.0, info.x_m)
+    create_variable(g, "position", (npos,), (npos,), ("position",), "int64", 0, np.arange(npos))
+    create_variable(g, "angle", (nang,), (nang,), ("angle",), "float64", 0.0, info.angles_deg)
+    create_variable(g, "y", (ny,), (ny,), ("y",), "float64", 0.0, info.y_m)
+    create_variable(g, "x", (nx,), (nx,), ("x",), "float64", 0.0, info.x_m)
     for name in ("phase", "attenuation"):
-        _create(g, name, (npos, nang, ny, nx), (1, 1, rb, nx), ("position", "angle", "y", "x"), "float32", np.nan)
-    _create(g, "iterations", (npos, nang), (1, 1), ("position", "angle"), "int32", -1)
-    _create(g, "converged", (npos, nang), (1, 1), ("position", "angle"), "bool", False)
-    _create(g, "residual_rmse", (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
-    _create(g, "outlier_pixels", (npos, nang), (1, 1), ("position", "angle"), "int32", -1)
+        create_variable(
+            g, name, (npos, nang, ny, nx), (1, 1, rb, nx), ("position", "angle", "y", "x"), "float32", np.nan
+        )
+    create_variable(g, "iterations", (npos, nang), (1, 1), ("position", "angle"), "int32", -1)
+    create_variable(g, "converged", (npos, nang), (1, 1), ("position", "angle"), "bool", False)
+    create_variable(g, "residual_rmse", (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
+    create_variable(g, "outlier_pixels", (npos, nang), (1, 1), ("position", "angle"), "int32", -1)
     # what each projection cost, kept with it: a run killed and resumed still has every timing
-    _create(g, "retrieval_seconds", (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
+    create_variable(g, "retrieval_seconds", (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
     # the fit's per-pixel residual is kept for one projection per position: what a user checks
     # first (structure in it is a model error), at the cost of one frame, not one per angle
-    _create(g, "preview_residual", (npos, ny, nx), (1, rb, nx), ("position", "y", "x"), "float32", np.nan)
+    create_variable(g, "preview_residual", (npos, ny, nx), (1, rb, nx), ("position", "y", "x"), "float32", np.nan)
     # the speckle's measured drift (the multi-image trackers: the mean over the K positions)
     for name in ("diffuser_drift_y_px", "diffuser_drift_x_px"):
-        _create(g, name, (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
+        create_variable(g, name, (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
     attrs = {k: v for k, v in info.attrs.items() if isinstance(v, (int, float, str, bool))}
     attrs.update({k: v for k, v in params.items() if isinstance(v, (int, float, str, bool)) or v is None})
     attrs["pwf_dask_parameters"] = json.dumps(params, default=str)
@@ -497,15 +490,17 @@ def create_scan(
     g = zarr.open_group(str(path), mode="w")
     x = x_m if x_m is not None else (np.arange(nx) - (nx - 1) / 2) * pixel_size_m
     y = (np.arange(ny) - (ny - 1) / 2) * pixel_size_m
-    _create(g, "position", (n_positions,), (n_positions,), ("position",), "int64", 0, np.arange(n_positions))
-    _create(g, "angle", (nang,), (nang,), ("angle",), "float64", 0.0, np.asarray(angles_deg, np.float64))
-    _create(g, "y", (ny,), (ny,), ("y",), "float64", 0.0, y)
-    _create(g, "x", (nx,), (nx,), ("x",), "float64", 0.0, np.asarray(x, np.float64))
-    _create(g, "projections", (n_positions, nang, ny, nx), (1, 1, ny, nx), ("position", "angle", "y", "x"), dtype, 0)
-    _create(g, "reference", (n_positions, ny, nx), (1, ny, nx), ("position", "y", "x"), dtype, 0)
+    create_variable(g, "position", (n_positions,), (n_positions,), ("position",), "int64", 0, np.arange(n_positions))
+    create_variable(g, "angle", (nang,), (nang,), ("angle",), "float64", 0.0, np.asarray(angles_deg, np.float64))
+    create_variable(g, "y", (ny,), (ny,), ("y",), "float64", 0.0, y)
+    create_variable(g, "x", (nx,), (nx,), ("x",), "float64", 0.0, np.asarray(x, np.float64))
+    create_variable(
+        g, "projections", (n_positions, nang, ny, nx), (1, 1, ny, nx), ("position", "angle", "y", "x"), dtype, 0
+    )
+    create_variable(g, "reference", (n_positions, ny, nx), (1, ny, nx), ("position", "y", "x"), dtype, 0)
     if flat_dark:
         for name in ("flat", "dark"):
-            _create(g, name, (ny, nx), (ny, nx), ("y", "x"), dtype, 0)
+            create_variable(g, name, (ny, nx), (ny, nx), ("y", "x"), dtype, 0)
     g.attrs.update(attrs)
     return g
 
@@ -541,5 +536,5 @@ def write_scan(
     for name, a in (("flat", flat), ("dark", dark)):
         if a is not None:
             a = np.asarray(a)
-            _create(g, name, a.shape, a.shape, ("y", "x"), a.dtype, 0, a)
+            create_variable(g, name, a.shape, a.shape, ("y", "x"), a.dtype, 0, a)
     consolidate(path)

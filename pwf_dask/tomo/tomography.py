@@ -227,17 +227,37 @@ def to_refractive_index(fbp_phase, fbp_attenuation, wavelength: float):
     return -k * fbp_phase, k * fbp_attenuation
 
 
-def remove_background(slices: np.ndarray, degree: int = 2) -> np.ndarray:
-    """Subtract a quadratic surface fitted over the empty area of each slice (Methods).
+#: Tomogram slices of more than this many pixels across are searched for their sample-free
+#: area on a copy binned to about this size (the quadratic is still fitted at full
+#: resolution): the search iterates a plane fit and a dilation up to 20 times, 2.3 s of a
+#: 2560^2 slice's 2.8 s, against 0.5 s for its gridding FBP (issue #31).
+BACKGROUND_SEARCH_PX = 512
 
-    Matter is positive in delta and beta, so the slice is handed to the background detector
-    negated (it looks for matter below the background)."""
+
+def background_mask(image: np.ndarray) -> np.ndarray:
+    """Sample-free pixels of one tomogram slice (matter is positive in delta and beta, so the
+    detector, which looks for matter below the background, is handed the slice negated); a
+    slice wider than :data:`BACKGROUND_SEARCH_PX` is searched binned b x b, its edge rows and
+    columns beyond whole bins left out of the fit."""
+    b = max(1, min(image.shape) // BACKGROUND_SEARCH_PX)
+    if b == 1:
+        return bg.detect_background(-image / (np.abs(image).max() or 1.0), smooth_px=1.5, margin_px=2)
+    ny, nx = (image.shape[0] // b) * b, (image.shape[1] // b) * b
+    small = image[:ny, :nx].reshape(ny // b, b, nx // b, b).mean(axis=(1, 3))
+    found = bg.detect_background(-small / (np.abs(small).max() or 1.0), smooth_px=1.5, margin_px=1)
+    mask = np.zeros(image.shape, bool)
+    mask[:ny, :nx] = np.repeat(np.repeat(found, b, axis=0), b, axis=1)
+    return mask
+
+
+def remove_background(slices: np.ndarray, degree: int = 2) -> np.ndarray:
+    """Subtract a quadratic surface fitted over the empty area of each slice (Methods)."""
     slices = np.asarray(slices)
     # single-precision slices come back single (each fitted in double): a task then holds one
     # volume-sized float32 array here, not two float64 ones
     out = np.empty(slices.shape, np.float32 if slices.dtype == np.float32 else np.float64)
     for i in range(slices.shape[0]):
         s = slices[i].astype(np.float64)
-        mask = bg.detect_background(-s / (np.abs(s).max() or 1.0), smooth_px=1.5, margin_px=2)
+        mask = background_mask(s)
         out[i] = bg.zero_background(s, mask, degree) if mask.sum() >= 6 else s
     return out

@@ -1,0 +1,59 @@
+"""Background of retrieved projections and tomograms: the surface fit and the sample-free mask."""
+
+import numpy as np
+import pytest
+
+from pwf_dask.physics import background as bg
+
+
+def _lstsq_surface(image, mask, degree):
+    """The same fit from a design matrix of every pixel (the textbook route)."""
+    yy, xx = np.mgrid[0 : image.shape[0], 0 : image.shape[1]].astype(np.float64)
+    yy /= image.shape[0] - 1
+    xx /= image.shape[1] - 1
+    a = np.stack([yy**i * xx**j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=-1)
+    coef, *_ = np.linalg.lstsq(a[mask], image[mask].astype(np.float64), rcond=None)
+    return a @ coef
+
+
+@pytest.mark.parametrize("degree", [1, 2])
+def test_surface_from_moments_is_the_least_squares_surface(rng, degree):
+    image = rng.normal(size=(70, 90)).astype(np.float32)
+    mask = rng.random(image.shape) < 0.3
+    np.testing.assert_allclose(bg.fit_surface(image, mask, degree), _lstsq_surface(image, mask, degree), atol=1e-10)
+    one_row = np.zeros(image.shape, bool)
+    one_row[5] = True  # rank-deficient in y: the minimum-norm solution, as lstsq gives
+    np.testing.assert_allclose(
+        bg.fit_surface(image, one_row, degree), _lstsq_surface(image, one_row, degree), atol=1e-9
+    )
+
+
+def test_a_quadratic_background_is_removed_exactly_around_a_sample(rng):
+    ny, nx = 96, 128
+    yy, xx = np.mgrid[0:ny, 0:nx] / 100.0
+    surface = 0.3 + 0.2 * yy - 0.1 * xx + 0.05 * yy * xx + 0.07 * xx**2
+    disk = (np.hypot(yy * 100 - 48, xx * 100 - 60) < 20).astype(float)
+    phase = surface - 2.0 * disk + rng.normal(0, 1e-3, (ny, nx))
+    mask = bg.detect_background(phase)
+    assert not mask[disk > 0].any() and mask.mean() > 0.6
+    flat = bg.zero_background(phase, mask, degree=2)
+    assert abs(flat[mask]).max() < 6e-3
+    np.testing.assert_allclose(flat[disk > 0].mean(), -2.0, atol=5e-3)
+
+
+def test_a_wide_tomogram_slice_is_searched_binned_and_fitted_at_full_resolution(rng):
+    """Above BACKGROUND_SEARCH_PX the sample-free area is found on a binned copy (17x faster
+    on 2560^2 slices); the quadratic under it still comes off at full resolution."""
+    from pwf_dask.tomo import tomography
+
+    n = 2 * tomography.BACKGROUND_SEARCH_PX + 37  # binned 2 x 2, a remainder at the edges
+    yy, xx = np.mgrid[0:n, 0:n] / n
+    disk = np.hypot(yy - 0.5, xx - 0.45) < 0.2
+    surface = 1e-7 * (0.5 + yy - 0.7 * xx + 0.3 * xx * yy + 0.2 * yy**2)
+    slices = (surface + 1e-6 * disk + rng.normal(0, 1e-8, (n, n)))[None].astype(np.float32)
+    mask = tomography.background_mask(slices[0].astype(np.float64))
+    assert not mask[disk].any() and mask[~disk].mean() > 0.8 and not mask[-1].any()
+    out = tomography.remove_background(slices)
+    assert out.dtype == np.float32
+    assert abs(out[0][~disk & mask]).max() < 1e-7
+    np.testing.assert_allclose(out[0][disk].mean(), 1e-6, rtol=0.01)
