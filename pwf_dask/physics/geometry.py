@@ -76,9 +76,18 @@ class Geometry:
         """The distance over which the diffuser's speckle develops before the detector (m)."""
         return self.diffuser_detector_distance_m + self.diffuser_upstream_m
 
-    def keywords(self) -> dict[str, float]:
-        """The geometry as :func:`pwf_dask.retrieve_projection` takes it (upstream only if set)."""
+    @classmethod
+    def from_attrs(cls, attrs, diffuser_upstream_m: float | None = None) -> Geometry:
+        """The geometry a scan store records (docs/scan-format.md §1); ``diffuser_upstream_m``
+        overrides the optional attribute of that name."""
+        if diffuser_upstream_m is None:
+            diffuser_upstream_m = attrs.get("diffuser_upstream_m", 0.0)
+        return cls(*(attrs[name] for name in GEOMETRY_KEYS), diffuser_upstream_m)
+
+    def keywords(self, with_upstream: bool = True) -> dict[str, float]:
+        """The geometry as :func:`pwf_dask.retrieve_projection` takes it (the upstream
+        distance only where set and asked for)."""
         out = {name: getattr(self, name) for name in GEOMETRY_KEYS}
-        if self.diffuser_upstream_m:
+        if with_upstream and self.diffuser_upstream_m:
             out["diffuser_upstream_m"] = self.diffuser_upstream_m
         return out

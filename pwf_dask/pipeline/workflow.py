@@ -24,7 +24,8 @@ from pwf_dask import __version__, calibration
 from pwf_dask.backend import resolve_device, to_numpy
 from pwf_dask.baselines.tracking import MIN_POSITIONS
 from pwf_dask.physics.detector import DEFAULT_OUTLIER_SIGMA, check_threshold, repair_outliers
-from pwf_dask.physics.optics import check_diffuser_upstream, wavelength_m
+from pwf_dask.physics.geometry import Geometry
+from pwf_dask.physics.optics import wavelength_m
 from pwf_dask.pipeline.cluster import Runner, check_scheduler, worker_fft_threads
 from pwf_dask.pwf.solver import DEFAULT_ALPHA, DEFAULT_GAMMA, DEFAULT_STEP, PAPER_ALPHA, STOP_RULE
 from pwf_dask.retrieval import (
@@ -259,10 +260,7 @@ def _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, co
     return retrieve_projection(
         xp.asarray(sample),
         xp.asarray(reference),
-        energy_eV=float(g.attrs["energy_eV"]),
-        pixel_size_m=float(g.attrs["pixel_size_m"]),
-        sample_diffuser_distance_m=float(g.attrs["sample_diffuser_distance_m"]),
-        diffuser_detector_distance_m=float(g.attrs["diffuser_detector_distance_m"]),
+        **Geometry.from_attrs(g.attrs).keywords(with_upstream=False),  # options carry the upstream distance
         coherence_length_x_m=coherence[p][0],
         coherence_length_y_m=coherence[p][1],
         fft_workers=worker_fft_threads(fft_workers),
@@ -379,11 +377,12 @@ def retrieve_scan(
     if "field_upsample" in options:
         options["field_upsample"] = check_field_upsample(options["field_upsample"])
     ds, info = scan_io.open_scan(scan_path)
+    # the scan's recorded geometry unless the caller gave the upstream distance (PWF reads it)
+    geometry = Geometry.from_attrs(
+        info.attrs, options.get("diffuser_upstream_m", info.diffuser_upstream_m) if method == "pwf" else 0.0
+    )
     if method == "pwf":
-        # the scan's recorded geometry unless the caller gave the distance
-        options["diffuser_upstream_m"] = check_diffuser_upstream(
-            options.get("diffuser_upstream_m", info.diffuser_upstream_m), info.sample_diffuser_distance_m
-        )
+        options["diffuser_upstream_m"] = geometry.diffuser_upstream_m
     if info.n_positions < MIN_POSITIONS.get(method, 1):
         raise ValueError(
             f"method {method} needs K >= {MIN_POSITIONS[method]} diffuser positions; the scan has {info.n_positions}"
@@ -397,9 +396,9 @@ def retrieve_scan(
             started = time.perf_counter()
             fit = calibration.fit_coherence_lengths(
                 ref,
-                info.pixel_size_m,
-                energy_eV=info.energy_eV,
-                diffuser_detector_distance_m=info.diffuser_detector_distance_m + options["diffuser_upstream_m"],
+                geometry.pixel_size_m,
+                energy_eV=geometry.energy_eV,
+                diffuser_detector_distance_m=geometry.speckle_distance_m,
                 diffuser_material=options.get("diffuser_material", "silicon carbide"),
                 method=options.get("coherence_method", "template"),
             )
