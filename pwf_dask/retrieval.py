@@ -851,7 +851,6 @@ class _Solved:
     sol: Any
     alpha: complex
     alpha_trials: list | None
-    grid: _FieldGrid
     gradient: float | None
     iterations: int
     history: list[float]
@@ -884,7 +883,6 @@ def _solve(build, run, model, grid: _FieldGrid, alpha, psi0, y, scale: float, ex
         sol,
         alpha,
         trials,
-        grid,
         gradient,
         sol.iterations,
         list(sol.objective_history),
