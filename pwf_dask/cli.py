@@ -442,24 +442,9 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from pwf_dask import __version__
+def _simulate_command(command) -> None:
     from pwf_dask.physics.diffusers import DEFAULT_GRIT, FEPA_P_GRIT_DIAMETER_M, GRAIN_SHAPES
     from pwf_dask.simulation import DEFAULT_PRESET, PRESETS
-
-    p = argparse.ArgumentParser(
-        prog="pwf-dask",
-        description="Single-shot speckle X-ray phase tomography by preconditioned Wirtinger flow.",
-        formatter_class=_HelpFormatter,
-    )
-    p.add_argument("--version", action="version", version=f"pwf-dask {__version__}")
-    loud = p.add_mutually_exclusive_group()
-    loud.add_argument("-v", "--verbose", action="store_true", help="debug messages too")
-    loud.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only: no progress lines")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
-    def command(name: str, text: str) -> argparse.ArgumentParser:
-        return sub.add_parser(name, help=text, description=text, formatter_class=_HelpFormatter)
 
     s = command("simulate", "simulate a scan of a 3-D phantom into a Zarr store")
     s.add_argument("out", help="the new scan store (a path that does not exist yet)")
@@ -532,6 +517,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="the diffuser's grains: spheres (default), faceted (pyramids, like crushed SiC) or mixed",
     )
     s.set_defaults(func=_simulate)
+
+
+def _ingest_command(command) -> None:
     i = command("ingest", "TIFF or HDF5 detector files into a scan store (docs/scan-format.md §1)")
     i.add_argument("out", help="the new scan store (a path that does not exist yet)")
     src = "TIFF file or glob, or FILE.h5:/dataset"
@@ -557,22 +545,34 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--coherence-length-y-m", type=float, help="(give both, or neither to calibrate)")
     i.add_argument("--flat-dark-corrected", action="store_true", help="the frames are already (I - dark)/(flat - dark)")
     i.set_defaults(func=_ingest)
+
+
+def _retrieve_command(command) -> None:
     r = command("retrieve", "phase and attenuation of every projection (resumable)")
     r.add_argument("scan", help="the scan store (docs/scan-format.md §1)")
     r.add_argument("recon", help="the reconstruction store: created, or resumed with the same options")
     add_retrieval_options(r)
     _compute_options(r)
     r.set_defaults(func=_retrieve)
+
+
+def _tomo_command(command) -> None:
     t = command("tomo", "delta and beta tomograms by FBP (resumable)")
     t.add_argument("recon", help="a reconstruction store whose projections are retrieved")
     add_tomo_options(t)
     _compute_options(t)
     t.set_defaults(func=_tomo)
+
+
+def _fsc_command(command) -> None:
     f = command("fsc", "Fourier shell correlation and resolution")
     f.add_argument("recon", help="a reconstruction store with tomograms")
     _split_option(f)
     f.add_argument("--criterion", default="1/4", choices=["1/4", "1/7", "half-bit", "1/2"], help="FSC threshold")
     f.set_defaults(func=_fsc)
+
+
+def _run_command(command) -> None:
     u = command("run", "retrieve + tomo + fsc + preview figures (resumable)")
     u.add_argument("scan", help="the scan store (docs/scan-format.md §1)")
     u.add_argument("recon", help="the reconstruction store: created, or resumed with the same options")
@@ -584,6 +584,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_retrieval_options(u)
     _compute_options(u)
     u.set_defaults(func=_run)
+
+
+def _estimate_command(command) -> None:
     m = command("estimate", "peak memory per worker and time of each stage, predicted before a run")
     m.add_argument("scan", help="the scan store (only its metadata is read)")
     m.add_argument("--workers", type=int, default=1, help="single-threaded workers the time is divided over")
@@ -597,6 +600,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--fbp", default="auto", choices=["auto", "gridrec", "backproject"], help="tomo's FBP (run's option)"
     )
     m.set_defaults(func=_estimate)
+
+
+def _verify_command(command) -> None:
     w = command("verify", "read every chunk of a scan or reconstruction store: missing or damaged ones (exit 1)")
     w.add_argument("store", help="a scan or reconstruction store")
     w.add_argument(
@@ -605,10 +611,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="mark damaged projections and row blocks not done (their chunks removed): 'run' then recomputes them",
     )
     w.set_defaults(func=_verify)
+
+
+def _preview_command(command) -> None:
     v = command("preview", "figures of a reconstruction: projection panels, delta/beta slices, FSC")
     v.add_argument("recon", help="a reconstruction store (figures of whatever stages it holds)")
     v.add_argument("dir", nargs="?", help="output folder (default: RECON_figures beside the store)")
     v.set_defaults(func=_preview)
+
+
+def _export_command(command) -> None:
     e = command("export", "delta and beta tomograms to float32 TIFF (voxel size in the resolution tags)")
     e.add_argument("recon", help="a reconstruction store with tomograms")
     e.add_argument("dir", help="output folder (created; existing files of the same names are refused)")
@@ -620,6 +632,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="stack: one multi-page file per volume; slices: a folder per volume, one file per slice",
     )
     e.set_defaults(func=_export)
+
+
+def _demo_command(command) -> None:
     d = command("demo", "simulate a small scan, reconstruct it, write figures")
     d.add_argument("dir", nargs="?", default="pwf-dask-demo", help="output folder (default ./pwf-dask-demo)")
     d.add_argument("--max-iter", type=int, default=300, help="PWF iterations per projection at most")
@@ -627,6 +642,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0, help="random seed of the simulated scan")
     _compute_options(d)
     d.set_defaults(func=_scan_demo)
+
+
+def _bench_command(command) -> None:
     b = command("bench", "benchmarks (from a source checkout); results to benchmarks/results/")
     b.add_argument(
         "what",
@@ -659,6 +677,41 @@ def build_parser() -> argparse.ArgumentParser:
         help="stability: re-measure only these axes, keep the others of the map in --out",
     )
     b.set_defaults(func=_bench)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The whole command line: global flags, then one sub-command per stage (each added by its ``_NAME_command``)."""
+    from pwf_dask import __version__
+
+    p = argparse.ArgumentParser(
+        prog="pwf-dask",
+        description="Single-shot speckle X-ray phase tomography by preconditioned Wirtinger flow.",
+        formatter_class=_HelpFormatter,
+    )
+    p.add_argument("--version", action="version", version=f"pwf-dask {__version__}")
+    loud = p.add_mutually_exclusive_group()
+    loud.add_argument("-v", "--verbose", action="store_true", help="debug messages too")
+    loud.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only: no progress lines")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def command(name: str, text: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=text, description=text, formatter_class=_HelpFormatter)
+
+    for add in (
+        _simulate_command,
+        _ingest_command,
+        _retrieve_command,
+        _tomo_command,
+        _fsc_command,
+        _run_command,
+        _estimate_command,
+        _verify_command,
+        _preview_command,
+        _export_command,
+        _demo_command,
+        _bench_command,
+    ):
+        add(command)
     return p
 
 

@@ -547,15 +547,25 @@ def largest_curvature(psi, y, model: PWFModel, direction=None, iterations: int =
     eta L < 2, Nesterov's iteration only for eta L < 4/3 as its momentum factor nears 1, and
     1/L is the textbook step. Each product M H v is a finite difference of the direction
     along v (rms 1e-2 and at most 5e-2 in any pixel, where exp(psi) is still linear to a few %), one evaluation of
-    :func:`objective_and_direction`. Power iteration approaches L from below (measured on a
-    256 x 256 frame: 3.08, 3.29, 3.45 after 5, 8, 12 products), so 1/L from 8 products keeps
-    eta L near 1.1, inside 4/3. The start vector is seeded: the step is reproducible.
+    :func:`objective_and_direction`. Power iteration approaches L from below (measured on the
+    paper's 256 x 256 scene: 3.83, 4.09, 4.24 after 5, 8, 12 products, 4.49 after 100), so
+    1/L from 8 products keeps eta L near 1.1, inside 4/3. The start vector is seeded: the step is reproducible.
 
     Why not a search along the first direction: that direction is dominated by the slow,
     smooth modes, whose curvature changes with the beam while the stiffest mode's does not
     (the same frame 10 % darker: L 3.29 against 3.41; the doubling search's step 0.5 against
     1.0). A step past 4/(3 L) grows the stiffest mode until a restart cuts it, and on the way
     it can throw the phase into a wrong basin (a +35 rad bump on a 2 % darker frame).
+
+    Lengths are measured in the metric M^-1 (:func:`metric_norm`), in which M H is
+    self-adjoint: the power iteration then rises monotonically to L. In the plain norm, the
+    float32 rounding of the two directions whose difference gives M H v (white, ~1e-7 of
+    their size) is amplified by the preconditioner's 1/(u^2+v^2), up to 6.7e6 on a 2592 px
+    wide grid; on a 32 x 2560 strip of a thick sample the estimate then jumped between 0.7
+    and 9.6 from one product to the next and ended 3.25 or 6.70 depending on the rounding
+    of one element-wise kernel (numba or NumPy), and with it the run: 2000 iterations
+    unconverged or 280 converged. In M^-1 the same products read 3.21, 3.58, 3.76, ...,
+    4.05 after 8 in single and double precision alike.
     """
     xp = model.xp
     if direction is None:
@@ -563,6 +573,8 @@ def largest_curvature(psi, y, model: PWFModel, direction=None, iterations: int =
     rng = np.random.default_rng(0)
     v = xp.asarray(rng.standard_normal(model.shape) + 1j * rng.standard_normal(model.shape)).astype(model.cdtype)
     v /= math.sqrt(inner(v, v).real / v.size)
+    weights = metric_phase_weights(model) if model.precond is not None else None
+    v_norm = metric_norm(v, model, weights)
     curvature = 0.0
     for _ in range(iterations):
         # the iterate localises on the stiffest pixels (bright spots of |t|^2); an rms step
@@ -574,12 +586,37 @@ def largest_curvature(psi, y, model: PWFModel, direction=None, iterations: int =
             _, d, _ = objective_and_direction(psi + h * v, y, model)
         d -= direction
         d *= 1.0 / h
-        curvature = math.sqrt(inner(d, d).real / d.size)
+        d_norm = metric_norm(d, model, weights)
+        curvature = d_norm / v_norm
         if not (math.isfinite(curvature) and curvature > 0):
             raise FloatingPointError("PWF curvature estimate is not finite at the start")
+        # the probe's size stays an rms in radians: it bounds how far exp(psi) is linearised
         v = d
-        v *= 1.0 / curvature
+        v *= 1.0 / math.sqrt(inner(d, d).real / d.size)
+        v_norm = metric_norm(v, model, weights)
     return curvature
+
+
+def metric_norm(w, model: PWFModel, phase_weights=None) -> float:
+    """rms of ``w`` in the metric M^-1 of the preconditioned iteration, M = diag(1, kappa
+    P^-1): sqrt((|Re w|^2 + <Im w, (u^2+v^2) Im w> / kappa) / N), the phase part summed on
+    its half spectrum (Parseval). M H is self-adjoint in it (:func:`largest_curvature`).
+    Without the preconditioner M^-1's phase block is 1 / kappa. ``phase_weights``:
+    :func:`metric_phase_weights` of the model, computed once by a caller that asks often."""
+    n = w.size
+    re, im = model.xp.ascontiguousarray(w.real), model.xp.ascontiguousarray(w.imag)
+    if model.precond is None:
+        phase_part = inner(im, im).real
+    else:
+        weights = metric_phase_weights(model) if phase_weights is None else phase_weights
+        phase_part = kernels.weighted_power(model.fft.rfft2(im), weights) / n
+    return math.sqrt((inner(re, re).real + phase_part / model.phase_scale) / n)
+
+
+def metric_phase_weights(model: PWFModel):
+    """(u^2+v^2) times each rfft bin's multiplicity: M^-1's phase block on a half spectrum."""
+    q2 = optics.laplacian_symbol(model.shape, model.xp, model.rdtype)
+    return q2 * _half_weights(model.shape, model.xp, model.rdtype)
 
 
 # --- Algorithm S1 -----------------------------------------------------------------------

@@ -25,6 +25,7 @@ import shutil
 import warnings
 from collections.abc import Sequence
 from contextlib import nullcontext
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -189,6 +190,105 @@ def read_angles_deg(spec: str | None, n: int, start_stop: Sequence[float] | None
     return np.rad2deg(a) if unit == "rad" else a
 
 
+@dataclass
+class _Sources:
+    """The frame sources of one ingest, opened, and where each frame of the store comes from."""
+
+    #: per diffuser position: its projections source and its index in a 4-D HDF5 dataset
+    positions: list[tuple[FrameSource, int]]
+    #: per diffuser position: the reference source, the frame or position in it, averaged or not
+    references: list[tuple[FrameSource, int, bool]]
+    flat: FrameSource | None
+    dark: FrameSource | None
+    opened: list[FrameSource]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.positions[0][0].frame_shape
+
+    @property
+    def n_angles(self) -> int:
+        return len(self.positions[0][0])
+
+    def close(self) -> None:
+        for s in self.opened:
+            s.close()
+
+
+def _open_sources(proj_specs: list[str], ref_specs: list[str], flat: str | None, dark: str | None) -> _Sources:
+    """Open every source and check that they fit together: one reference per position, equal
+    angle counts and one frame shape; all are closed again on a refusal."""
+    opened: list[FrameSource] = []
+    try:
+        proj = [FrameSource(s, "projections") for s in proj_specs]
+        opened += proj
+        refs = [FrameSource(s, "reference") for s in ref_specs]
+        opened += refs
+        flat_src = FrameSource(flat, "flat") if flat else None
+        dark_src = FrameSource(dark, "dark") if dark else None
+        opened += [s for s in (flat_src, dark_src) if s is not None]
+        if len(proj) == 1 and proj[0].positions > 1:
+            positions = [(proj[0], k) for k in range(proj[0].positions)]
+        else:
+            positions = [(p, 0) for p in proj]
+        k_total = len(positions)
+        if any(len(src) != len(positions[0][0]) for src, _ in positions):
+            raise ScanError(f"projections: positions have {[len(s) for s, _ in positions]} frames, expected equal")
+        if len(refs) == 1 and refs[0].positions == 1 and k_total > 1 and len(refs[0]) == k_total:
+            references = [(refs[0], k, False) for k in range(k_total)]  # one frame per position
+        elif len(refs) == k_total:
+            references = [(r, 0, True) for r in refs]  # each averaged
+        else:
+            raise ScanError(f"reference: {len(refs)} sources for {k_total} diffuser positions")
+        sources = _Sources(positions, references, flat_src, dark_src, opened)
+        for s in opened:
+            if s.frame_shape != sources.shape:
+                raise ScanError(f"{s.what}: frames of {s.spec} are {s.frame_shape}, projections are {sources.shape}")
+        if sources.n_angles < 1:
+            raise ScanError("projections: no frames")
+        return sources
+    except BaseException:
+        for s in opened:
+            s.close()
+        raise
+
+
+def _scan_attrs(geometry, *, flat_dark_corrected: bool, coherence: tuple, specs: dict) -> dict:
+    """The scan store's root attributes (docs/scan-format.md §1) and the ingest's sources."""
+    attrs = {
+        "energy_eV": geometry.energy_eV,
+        "pixel_size_m": geometry.pixel_size_m,
+        "sample_diffuser_distance_m": geometry.sample_diffuser_distance_m,
+        "diffuser_detector_distance_m": geometry.diffuser_detector_distance_m,
+        "flat_dark_corrected": bool(flat_dark_corrected),
+        **({"diffuser_upstream_m": geometry.diffuser_upstream_m} if geometry.diffuser_upstream_m else {}),
+        "ingest_sources": specs,
+    }
+    cx, cy = coherence
+    if cx is not None or cy is not None:
+        if cx is None or cy is None:
+            raise ScanError("give both coherence lengths (x and y) or neither")
+        attrs["coherence_length_x_m"], attrs["coherence_length_y_m"] = float(cx), float(cy)
+    return attrs
+
+
+def _write_frames(g, sources: _Sources, stored, check, progress: bool) -> None:
+    """Every reference, then every projection, each checked as it is written."""
+    for k, (src, idx, average) in enumerate(sources.references):
+        img = stored(src.mean(idx) if average else src.frame(k))
+        check(f"reference {k}", img)
+        g["reference"][k] = img
+    done = [0]
+    total = len(sources.positions) * sources.n_angles
+    with Progress("ingest", total, lambda: done[0], unit="projections") if progress else nullcontext():
+        for k, (src, idx) in enumerate(sources.positions):
+            for i in range(sources.n_angles):
+                img = stored(src.frame(i, idx))
+                check(f"projection {i} of position {k} ({src.spec})", img)
+                g["projections"][k, i] = img
+                done[0] += 1
+
+
 def ingest_scan(
     out: str | Path,
     *,
@@ -219,52 +319,26 @@ def ingest_scan(
     store is removed. ``diffuser_upstream_m`` > 0 records a diffuser that far upstream of the
     sample (with ``sample_diffuser_distance_m`` = 0; not in docs/scan-format.md §1, read by PWF).
     """
+    from pwf_dask.physics.geometry import Geometry
+    from pwf_dask.physics.optics import check_plausible_geometry
+
     out = Path(out)
     if out.exists():
         raise ScanError(f"{out} already exists; ingest writes a new store and never overwrites one")
     try:
-        from pwf_dask.physics.geometry import Geometry
-        from pwf_dask.physics.optics import check_plausible_geometry
-
-        Geometry(energy_eV, pixel_size_m, sample_diffuser_distance_m, diffuser_detector_distance_m, diffuser_upstream_m)
+        geometry = Geometry(
+            energy_eV, pixel_size_m, sample_diffuser_distance_m, diffuser_detector_distance_m, diffuser_upstream_m
+        )
         check_plausible_geometry(coherence_length_x_m=coherence_length_x_m, coherence_length_y_m=coherence_length_y_m)
     except ValueError as exc:
         raise ScanError(str(exc)) from None
     proj_specs = [projections] if isinstance(projections, str) else list(projections)
     ref_specs = [reference] if isinstance(reference, str) else list(reference)
-    sources: list[FrameSource] = []
+    sources = _open_sources(proj_specs, ref_specs, flat, dark)
     try:
-        proj = [FrameSource(s, "projections") for s in proj_specs]
-        sources += proj
-        refs = [FrameSource(s, "reference") for s in ref_specs]
-        sources += refs
-        flat_src = FrameSource(flat, "flat") if flat else None
-        dark_src = FrameSource(dark, "dark") if dark else None
-        sources += [s for s in (flat_src, dark_src) if s is not None]
-        # per diffuser position: (its source, its index in a 4-D HDF5 dataset)
-        if len(proj) == 1 and proj[0].positions > 1:
-            positions = [(proj[0], k) for k in range(proj[0].positions)]
-        else:
-            positions = [(p, 0) for p in proj]
-        k_total = len(positions)
-        n_ang = len(positions[0][0])
-        if any(len(src) != n_ang for src, _ in positions):
-            raise ScanError(f"projections: positions have {[len(s) for s, _ in positions]} frames, expected equal")
-        if len(refs) == 1 and refs[0].positions == 1 and k_total > 1 and len(refs[0]) == k_total:
-            ref_frames = [(refs[0], k, False) for k in range(k_total)]  # one frame per position
-        elif len(refs) == k_total:
-            ref_frames = [(r, 0, True) for r in refs]  # each averaged
-        else:
-            raise ScanError(f"reference: {len(refs)} sources for {k_total} diffuser positions")
-        shape = proj[0].frame_shape
-        for s in sources:
-            if s.frame_shape != shape:
-                raise ScanError(f"{s.what}: frames of {s.spec} are {s.frame_shape}, projections are {shape}")
-        if n_ang < 1:
-            raise ScanError("projections: no frames")
-        angles_deg = read_angles_deg(angles, n_ang, angles_range_deg, angles_unit)
-        integer = all(s.dtype == np.uint16 for s in sources) and not flat_dark_corrected
-        if not (flat_dark_corrected or flat_src or dark_src):
+        angles_deg = read_angles_deg(angles, sources.n_angles, angles_range_deg, angles_unit)
+        integer = all(s.dtype == np.uint16 for s in sources.opened) and not flat_dark_corrected
+        if not (flat_dark_corrected or flat or dark):
             warnings.warn(
                 "no flat and no dark: the frames are used as they are (a dark offset then reads as attenuation; "
                 "give --flat/--dark, or --flat-dark-corrected if they already are)",
@@ -276,33 +350,25 @@ def ingest_scan(
         def stored(a):
             return np.clip(np.rint(a), 0, 65535).astype(np.uint16) if integer else np.asarray(a, np.float32)
 
-        flat_img = stored(flat_src.mean()) if flat_src else None
-        dark_img = stored(dark_src.mean()) if dark_src else None
+        flat_img = stored(sources.flat.mean()) if sources.flat else None
+        dark_img = stored(sources.dark.mean()) if sources.dark else None
         if flat_img is not None and dark_img is not None and np.any(flat_img.astype(np.float32) <= dark_img):
             raise ScanError("flat: some pixels are not above the dark (flat - dark <= 0)")
-        attrs = {
-            "energy_eV": float(energy_eV),
-            "pixel_size_m": float(pixel_size_m),
-            "sample_diffuser_distance_m": float(sample_diffuser_distance_m),
-            "diffuser_detector_distance_m": float(diffuser_detector_distance_m),
-            "flat_dark_corrected": bool(flat_dark_corrected),
-            **({"diffuser_upstream_m": float(diffuser_upstream_m)} if diffuser_upstream_m else {}),
-            "ingest_sources": {
-                "projections": proj_specs,
-                "reference": ref_specs,
-                "flat": flat,
-                "dark": dark,
-                "angles": angles or list(angles_range_deg),
-            },
+        specs = {
+            "projections": proj_specs,
+            "reference": ref_specs,
+            "flat": flat,
+            "dark": dark,
+            "angles": angles or list(angles_range_deg),
         }
-        if coherence_length_x_m is not None or coherence_length_y_m is not None:
-            if coherence_length_x_m is None or coherence_length_y_m is None:
-                raise ScanError("give both coherence lengths (x and y) or neither")
-            attrs["coherence_length_x_m"] = float(coherence_length_x_m)
-            attrs["coherence_length_y_m"] = float(coherence_length_y_m)
+        attrs = _scan_attrs(
+            geometry,
+            flat_dark_corrected=flat_dark_corrected,
+            coherence=(coherence_length_x_m, coherence_length_y_m),
+            specs=specs,
+        )
     except BaseException:
-        for s in sources:
-            s.close()
+        sources.close()
         raise
 
     def check(name: str, img) -> None:
@@ -312,13 +378,14 @@ def ingest_scan(
         if np.any(a < 0):
             raise ScanError(f"{name}: negative values after flat/dark correction (min {float(a.min()):.3g})")
 
+    shape = sources.shape
     try:
         g = create_scan(
             out,
-            n_positions=k_total,
+            n_positions=len(sources.positions),
             angles_deg=angles_deg,
             shape=shape,
-            pixel_size_m=float(pixel_size_m),
+            pixel_size_m=geometry.pixel_size_m,
             dtype=dtype,
             attrs=attrs,
             flat_dark=False,
@@ -326,25 +393,13 @@ def ingest_scan(
         for name, img in (("flat", flat_img), ("dark", dark_img)):
             if img is not None:
                 create_variable(g, name, shape, shape, ("y", "x"), dtype, 0, img)
-        for k, (src, idx, average) in enumerate(ref_frames):
-            img = stored(src.mean(idx) if average else src.frame(k))
-            check(f"reference {k}", img)
-            g["reference"][k] = img
-        done = [0]
-        with Progress("ingest", k_total * n_ang, lambda: done[0], unit="projections") if progress else nullcontext():
-            for k, (src, idx) in enumerate(positions):
-                for i in range(n_ang):
-                    img = stored(src.frame(i, idx))
-                    check(f"projection {i} of position {k} ({src.spec})", img)
-                    g["projections"][k, i] = img
-                    done[0] += 1
+        _write_frames(g, sources, stored, check, progress)
         consolidate(out)
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)
         raise
     finally:
-        for s in sources:
-            s.close()
+        sources.close()
     return str(out)
 
 
