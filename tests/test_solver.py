@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pwf_dask.physics import optics
-from pwf_dask.pwf import solver
+from pwf_dask.pwf import operators, solver
 
 
 def make_model(
@@ -193,9 +193,9 @@ def test_curvature_probe_stays_linear_on_a_bright_spot(rng, monkeypatch):
     y = np.abs(t) ** 2 / np.mean(np.abs(t) ** 2)
     psi = np.zeros(model.shape, complex)
     capped = solver.largest_curvature(psi, y, model, iterations=30)
-    monkeypatch.setattr(solver, "CURVATURE_PROBE_MAX", 1e9)
+    monkeypatch.setattr(operators, "CURVATURE_PROBE_MAX", 1e9)
     uncapped = solver.largest_curvature(psi, y, model, iterations=30)
-    monkeypatch.setattr(solver, "CURVATURE_PROBE_MAX", 1e-6)
+    monkeypatch.setattr(operators, "CURVATURE_PROBE_MAX", 1e-6)
     linear = solver.largest_curvature(psi, y, model, iterations=30)
     assert 0.9 * linear < capped < 1.25 * linear, (capped, linear)
     assert uncapped > 3 * linear, (uncapped, linear)
