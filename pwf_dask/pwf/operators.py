@@ -285,9 +285,10 @@ def largest_curvature(psi, y, model: PWFModel, direction=None, iterations: int =
         if not (math.isfinite(curvature) and curvature > 0):
             raise FloatingPointError("PWF curvature estimate is not finite at the start")
         # the probe's size stays an rms in radians: it bounds how far exp(psi) is linearised
+        rms = math.sqrt(inner(d, d).real / d.size)
         v = d
-        v *= 1.0 / math.sqrt(inner(d, d).real / d.size)
-        v_norm = metric_norm(v, model, weights)
+        v *= 1.0 / rms
+        v_norm = d_norm / rms  # the metric norm scales with v: no second transform
     return curvature
 
 
