@@ -236,6 +236,45 @@ def test_curvature_step_does_not_follow_the_beam_level(rng):
     assert abs(dark / full - 1) < 0.02, (full, dark)
 
 
+def _loop_state(restart="gradient"):
+    psi = np.zeros((4, 4), complex)
+    run = solver._Run(
+        xp=np, fft=None, step=1.0, restart=restart, rule=solver.STOP_RULE, rise_tol=1e-11, phi_prev=psi, eta=1.0
+    )
+    run.last = (psi, 10.0, psi, None)
+    return run
+
+
+def test_rejected_step_halves_eta_after_a_plain_step_and_restarts_after_momentum():
+    """Algorithm S1's safety rules: J rising after a plain step halves eta; after a momentum
+    step it restarts the momentum and keeps eta, unless successive steps point opposite ways
+    (a mode too stiff for eta), and then only once in two restarts."""
+    run = _loop_state()
+    run.steps = [1.0, 2.0]
+    assert run.reject()[1] == 10.0
+    assert (run.eta, run.backtracks, run.restarts, run.steps) == (0.5, 1, 0, [])
+
+    run = _loop_state()
+    run.momentum_used, run.anchor_j = True, 12.0
+    assert not run.rose(11.0)  # below the momentum run's start: tolerated
+    assert run.rose(12.1)
+    one = np.ones((4, 4), complex)
+    run.recent_steps = [one, one]  # aligned: the slow modes' overshoot
+    run.reject()
+    assert (run.eta, run.restarts, run.momentum_used, run.mu) == (1.0, 1, False, 1.0)
+
+    run.recent_steps = [one, -one]  # anti-aligned: a stiff mode
+    run.restart_momentum()
+    assert (run.eta, run.backtracks, run.halved) == (0.5, 1, True)
+    run.restart_momentum()  # the restart right after a halving keeps eta
+    assert (run.eta, run.halved) == (0.5, False)
+
+    function = _loop_state("function")
+    function.momentum_used, function.anchor_j = True, 12.0
+    assert function.rose(11.0)  # the function rule compares with the last accepted J
+    assert not _loop_state("none").rose(1e9)
+
+
 def test_unknown_restart_rule_is_refused(rng):
     model, y = make_model(rng)
     with pytest.raises(ValueError, match="restart must be"):

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -93,6 +94,143 @@ DEFAULT_STEP = 1.0
 DEFAULT_GAMMA = 1.0
 
 
+@dataclass
+class _Run:
+    """The state of one run of Algorithm S1 (:func:`pwf`) between iterations: Nesterov's
+    momentum, the last accepted point, the step eta and what the stop rule watches."""
+
+    xp: ModuleType
+    fft: Any
+    step: float  # eta as given (units of 1/L with the step search)
+    restart: str  # the momentum restart rule, one of RESTARTS
+    rule: StopRule
+    rise_tol: float  # a rise of J below this (relative) is the working precision's rounding
+    phi_prev: Any
+    low_pass: Any = None  # the low band's filter (None: not watched)
+    eta: float = 0.0
+    mu: float = 1.0
+    momentum_used: bool = False
+    last: tuple | None = None  # (psi, J, direction, evaluation) of the last accepted point
+    last_x_norm: float = 0.0
+    steps: list[float] = field(default_factory=list)  # rms steps since the last momentum restart
+    recent_steps: list = field(default_factory=list)  # the last two accepted psi_k - psi_{k-1}
+    history: list[float] = field(default_factory=list)
+    low_band: list = field(default_factory=list)  # low-passed phase, one per window
+    accepted: int = 0
+    restarts: int = 0
+    backtracks: int = 0
+    streak: int = 0  # consecutive accepted iterations that pass the field correlation
+    anchor_j: float = math.inf  # J at the start of the momentum run
+    run_best: float = math.inf  # J's lowest value in the momentum run
+    stalled: int = 0  # accepted iterations since run_best last fell
+    halved: bool = False  # eta was halved at the last momentum restart
+
+    @property
+    def stall_limit(self) -> int:
+        """Iterations without a new low of J after which momentum restarts; long on purpose:
+        20 iterations cut productive runs at 1e3 ph/px (error 0.42 for 0.06)."""
+        return 5 * self.rule.window
+
+    def rose(self, j: float) -> bool:
+        """J above the last accepted value (function rule); the gradient rule tolerates J
+        at the extrapolated point oscillating inside a momentum run as long as it stays below
+        the run's start. Never under ``"none"``."""
+        if self.last is None or self.restart == "none":
+            return False
+        ref_j = self.anchor_j if (self.restart == "gradient" and self.momentum_used) else self.last[1]
+        return j > ref_j * (1.0 + self.rise_tol)
+
+    def restart_momentum(self) -> None:
+        """Count a momentum restart; under the gradient rule, halve eta when a stiff mode
+        caused it (:data:`STIFF_COSINE`), unless eta was halved at the restart before: that
+        run's oscillation grew at the longer step."""
+        self.restarts += 1
+        self.steps.clear()  # the stop's rate estimate starts afresh with the run (_settled)
+        if self.restart != "gradient" or len(self.recent_steps) < 2:
+            return
+        if self.halved:
+            self.halved = False
+            return
+        before, now = self.recent_steps
+        cosine = inner(before, now).real / math.sqrt(inner(before, before).real * inner(now, now).real or 1.0)
+        if cosine < STIFF_COSINE:
+            self.eta *= 0.5
+            self.backtracks += 1
+            self.halved = True
+
+    def reject(self) -> tuple:
+        """Discard the point where J rose: a momentum restart, or after a plain step a halved
+        eta. Returns the last accepted (psi, J, direction, evaluation) to go on from."""
+        if self.momentum_used:
+            self.restart_momentum()
+        else:
+            self.backtracks += 1
+            self.eta *= 0.5
+            self.steps.clear()
+        self.mu = 1.0
+        self.momentum_used = False
+        self.streak = 0
+        return self.last
+
+    def accept(self, psi, j: float, d, ev) -> None:
+        """Record an accepted point: its step, the field correlation with the last one
+        (Algorithm S1, line 14), J for the momentum run and the stop, the low band."""
+        if self.last is not None:
+            dpsi, step_sq = kernels.step_and_norm(psi, self.last[0])
+            self.recent_steps = [*self.recent_steps[-1:], dpsi]
+            self.steps.append(math.sqrt(step_sq / dpsi.size))
+            x_sq, overlap = kernels.field_correlation(ev.x, self.last[3].x)
+            x_norm = math.sqrt(x_sq)
+            corr = abs(overlap) / (x_norm * self.last_x_norm)
+            self.streak = self.streak + 1 if 1.0 - corr < self.rule.tol else 0
+            self.last_x_norm = x_norm
+        else:
+            self.last_x_norm = math.sqrt(inner(ev.x, ev.x).real)
+        if not self.momentum_used:
+            self.anchor_j = j
+            self.run_best, self.stalled = j, 0
+        elif j < self.run_best:
+            self.run_best, self.stalled = j, 0
+        else:
+            self.stalled += 1
+        self.last = (psi, j, d, ev)
+        self.history.append(j)
+        self.accepted += 1
+        if self.low_pass is not None and self.accepted % self.rule.window == 0:
+            band = _filter_real(self.xp.ascontiguousarray(psi.imag), self.low_pass, self.fft)
+            self.low_band = [*self.low_band[-2:], band]
+
+    def converged(self, psi, k: int) -> bool:
+        """The stop rule (:class:`StopRule`, see :func:`pwf`) after the accepted iterate ``k``."""
+        rule = self.rule
+        if not (rule.tol > 0 and self.streak >= rule.patience and k >= rule.min_iter):
+            return False
+        if _settled(self.steps, psi, rule.rtol, rule.window, self.xp):
+            return True
+        return _stationary(self.history, rule.jtol, rule.window) and (
+            self.low_pass is None or _low_band_settled(self.low_band, rule.rtol, self.xp)
+        )
+
+    def extrapolate(self, psi, d):
+        """Algorithm S1, lines 12-13: phi = psi - eta d and the next point
+        phi + beta (phi - phi_prev), with the momentum dropped when it points uphill along
+        the preconditioned gradient or has made no new low of J for :attr:`stall_limit`
+        iterations (the uphill test can stay silent for ever while J oscillates: at
+        L1 = 0, one 1000-iteration run)."""
+        phi, uphill = kernels.descent_point(psi, d, self.phi_prev, self.eta)
+        mu_prev = self.mu
+        self.mu = 0.5 * (1.0 + math.sqrt(1.0 + 4.0 * self.mu * self.mu))
+        beta = (mu_prev - 1.0) / self.mu
+        if self.restart == "gradient" and beta > 0 and (uphill > 0 or self.stalled >= self.stall_limit):
+            self.restart_momentum()
+            self.mu, beta = 1.0, 0.0
+            self.stalled = 0
+        self.momentum_used = beta > 0
+        psi = kernels.momentum_point(phi, self.phi_prev, beta) if self.momentum_used else phi
+        self.phi_prev = phi
+        return psi
+
+
 def pwf(
     y,
     model: PWFModel,
@@ -162,47 +300,29 @@ def pwf(
         raise ValueError(f"restart must be one of {', '.join(RESTARTS)}, got {restart!r}")
     xp = model.xp
     psi = xp.zeros(model.shape, dtype=model.cdtype) if psi0 is None else xp.asarray(psi0, dtype=model.cdtype)
-    eta = float(step)
-    mu = 1.0
-    phi_prev = psi
-    last = None  # (psi, J, direction, evaluation) of the last accepted evaluation
-    last_x_norm = None
-    steps: list[float] = []  # accepted step sizes since the last momentum restart
-    momentum_used = False
-    history: list[float] = []
-    restarts = backtracks = streak = 0
-    anchor_j = math.inf
-    run_best, stalled = math.inf, 0
-    # long on purpose: 20 iterations cut productive runs at 1e3 ph/px (error 0.42 for 0.06)
-    stall_limit = 5 * window
-    halved = False  # eta was halved at the last momentum restart
-    recent_steps: list = []  # the last two accepted steps psi_k - psi_{k-1}
-    low_pass = low_band_filter(model.shape, xp, model.rdtype, low_band_px) if low_band_px > 0 else None
-    low_band: list = []  # low-passed phase, one snapshot per ``window`` accepted iterations
-    accepted = 0
-
-    def restart_momentum():
-        """Count a momentum restart; under the gradient rule, halve eta when a stiff mode
-        caused it (:data:`STIFF_COSINE`), unless eta was halved at the restart before: that
-        run's oscillation grew at the longer step."""
-        nonlocal restarts, halved, eta, backtracks
-        restarts += 1
-        steps.clear()  # the stop's rate estimate starts afresh with the run (_settled)
-        if restart != "gradient" or len(recent_steps) < 2:
-            return
-        if halved:
-            halved = False
-            return
-        before, now = recent_steps
-        cosine = inner(before, now).real / math.sqrt(inner(before, before).real * inner(now, now).real or 1.0)
-        if cosine < STIFF_COSINE:
-            eta *= 0.5
-            backtracks += 1
-            halved = True
-
+    rule = StopRule(
+        max_iter=max_iter,
+        tol=tol,
+        min_iter=min_iter,
+        patience=patience,
+        rtol=rtol,
+        jtol=jtol,
+        window=window,
+        low_band_px=low_band_px,
+    )
     # J is summed in float64 from residuals rounded to the working precision: a rise
     # smaller than that rounding is noise, not a failed step
-    rise_tol = 1e-5 if model.rdtype == np.float32 else 1e-11
+    run = _Run(
+        xp=xp,
+        fft=model.fft,
+        step=float(step),
+        restart=restart,
+        rule=rule,
+        rise_tol=1e-5 if model.rdtype == np.float32 else 1e-11,
+        phi_prev=psi,
+        low_pass=low_band_filter(model.shape, xp, model.rdtype, low_band_px) if low_band_px > 0 else None,
+        eta=float(step),
+    )
     converged = False
     reason = "max_iter"
     k = 0
@@ -213,99 +333,37 @@ def pwf(
             j, d, ev = objective_and_direction(psi, y, model)
         if not math.isfinite(j):
             reason = "non-finite objective"
-            if last is None:
+            if run.last is None:
                 raise FloatingPointError("PWF objective is not finite at the first iterate")
             if restart == "none":
                 break  # plain Algorithm S1 has no way back: it diverged
             j = math.inf
-        # function restart: J above the last accepted value; gradient restart tolerates J(y)
-        # oscillating inside a momentum run as long as it stays below the run's start
-        rose = False
-        if last is not None and restart != "none":
-            ref_j = anchor_j if (restart == "gradient" and momentum_used) else last[1]
-            rose = j > ref_j * (1.0 + rise_tol)
-        if rose:
-            if momentum_used:
-                restart_momentum()
-            else:
-                backtracks += 1
-                eta *= 0.5
-                steps.clear()
-            psi, j, d, ev = last
-            mu = 1.0
-            momentum_used = False
-            streak = 0
-            if eta < 1e-12 * step:
+        if run.rose(j):
+            psi, j, d, ev = run.reject()
+            if run.eta < 1e-12 * step:
                 reason = "step collapsed"
                 break
         else:
-            if last is not None:
-                dpsi, step_sq = kernels.step_and_norm(psi, last[0])
-                recent_steps = [*recent_steps[-1:], dpsi]
-                steps.append(math.sqrt(step_sq / dpsi.size))
-                x_sq, overlap = kernels.field_correlation(ev.x, last[3].x)
-                x_norm = math.sqrt(x_sq)
-                corr = abs(overlap) / (x_norm * last_x_norm)
-                streak = streak + 1 if 1.0 - corr < tol else 0
-                last_x_norm = x_norm
-            else:
-                last_x_norm = math.sqrt(inner(ev.x, ev.x).real)
-            if last is None and step_search:
-                eta = step / largest_curvature(psi, y, model, direction=d)
-            if not momentum_used:
-                anchor_j = j
-                run_best, stalled = j, 0
-            elif j < run_best:
-                run_best, stalled = j, 0
-            else:
-                stalled += 1
-            last = (psi, j, d, ev)
-            history.append(j)
-            accepted += 1
-            if low_pass is not None and accepted % window == 0:
-                low_band = [*low_band[-2:], _filter_real(xp.ascontiguousarray(psi.imag), low_pass, model.fft)]
+            if run.last is None and step_search:
+                run.eta = step / largest_curvature(psi, y, model, direction=d)
+            run.accept(psi, j, d, ev)
             if callback is not None:
                 callback(k, j, psi)
-            if (
-                tol > 0
-                and streak >= patience
-                and k >= min_iter
-                and (
-                    _settled(steps, psi, rtol, window, xp)
-                    or (
-                        _stationary(history, jtol, window)
-                        and (low_pass is None or _low_band_settled(low_band, rtol, xp))
-                    )
-                )
-            ):
+            if run.converged(psi, k):
                 converged = True
                 reason = "converged"
                 break
-        # phi = psi - eta d (line 12) and whether the momentum phi - phi_prev points uphill
-        phi, uphill = kernels.descent_point(psi, d, phi_prev, eta)
-        mu_prev = mu
-        mu = 0.5 * (1.0 + math.sqrt(1.0 + 4.0 * mu * mu))
-        beta = (mu_prev - 1.0) / mu
-        if restart == "gradient" and beta > 0 and (uphill > 0 or stalled >= stall_limit):
-            # the momentum points uphill along the (preconditioned) gradient at psi, or has
-            # made no new low of J for ``stall_limit`` iterations (the uphill test can stay
-            # silent for ever while J oscillates: at L1 = 0, one 1000-iteration run)
-            restart_momentum()
-            mu, beta = 1.0, 0.0
-            stalled = 0
-        momentum_used = beta > 0
-        psi = kernels.momentum_point(phi, phi_prev, beta) if momentum_used else phi
-        phi_prev = phi
-    psi_best, _, _, ev_best = last
+        psi = run.extrapolate(psi, d)
+    psi_best, _, _, ev_best = run.last
     return PWFSolution(
         psi=psi_best,
         evaluation=ev_best,
         iterations=k,
         converged=converged,
-        objective_history=history,
-        step=eta,
-        restarts=restarts,
-        backtracks=backtracks,
+        objective_history=run.history,
+        step=run.eta,
+        restarts=run.restarts,
+        backtracks=run.backtracks,
         stop_reason=reason,
     )
 
