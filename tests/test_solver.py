@@ -238,9 +238,7 @@ def test_curvature_step_does_not_follow_the_beam_level(rng):
 
 def _loop_state(restart="gradient"):
     psi = np.zeros((4, 4), complex)
-    run = solver._Run(
-        xp=np, fft=None, step=1.0, restart=restart, rule=solver.STOP_RULE, rise_tol=1e-11, phi_prev=psi, eta=1.0
-    )
+    run = solver._Run(xp=np, fft=None, restart=restart, rule=solver.STOP_RULE, rise_tol=1e-11, phi_prev=psi, eta=1.0)
     run.last = (psi, 10.0, psi, None)
     return run
 

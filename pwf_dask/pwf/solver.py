@@ -101,13 +101,12 @@ class _Run:
 
     xp: ModuleType
     fft: Any
-    step: float  # eta as given (units of 1/L with the step search)
     restart: str  # the momentum restart rule, one of RESTARTS
     rule: StopRule
     rise_tol: float  # a rise of J below this (relative) is the working precision's rounding
     phi_prev: Any
     low_pass: Any = None  # the low band's filter (None: not watched)
-    eta: float = 0.0
+    eta: float = 0.0  # eta of Algorithm S1 (halved by the safety rules)
     mu: float = 1.0
     momentum_used: bool = False
     last: tuple | None = None  # (psi, J, direction, evaluation) of the last accepted point
@@ -315,7 +314,6 @@ def pwf(
     run = _Run(
         xp=xp,
         fft=model.fft,
-        step=float(step),
         restart=restart,
         rule=rule,
         rise_tol=1e-5 if model.rdtype == np.float32 else 1e-11,
