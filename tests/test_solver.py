@@ -401,3 +401,13 @@ def test_plain_algorithm_s1_diverges_where_the_safe_step_does_not(rng):
     assert sol.stop_reason == "non-finite objective" and sol.iterations < 60
     assert sol.restarts == 0 and sol.backtracks == 0
     assert np.all(np.isfinite(sol.psi))
+
+
+def test_an_overflowing_trial_step_is_rejected_and_not_reported_as_the_stop(rng):
+    """A far too long first step overflows exp(psi); under the safe rules that trial is
+    rejected, eta halved, and a run that then reaches the cap says so (it used to report the
+    rejected trial's "non-finite objective")."""
+    model, y = make_model(rng, precision="single")
+    sol = solver.pwf(y.astype(np.float32), model, step=1e6, step_search=False, max_iter=40, tol=0)
+    assert sol.backtracks > 0 and np.all(np.isfinite(sol.psi))
+    assert sol.stop_reason == "max_iter" and sol.iterations == 40

@@ -330,12 +330,12 @@ def pwf(
         with np.errstate(over="ignore", invalid="ignore"):
             j, d, ev = objective_and_direction(psi, y, model)
         if not math.isfinite(j):
-            reason = "non-finite objective"
             if run.last is None:
                 raise FloatingPointError("PWF objective is not finite at the first iterate")
             if restart == "none":
+                reason = "non-finite objective"
                 break  # plain Algorithm S1 has no way back: it diverged
-            j = math.inf
+            j = math.inf  # a rejected trial step; the run goes on from the last accepted point
         if run.rose(j):
             psi, j, d, ev = run.reject()
             if run.eta < 1e-12 * step:
