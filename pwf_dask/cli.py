@@ -130,6 +130,8 @@ def retrieval_kwargs(args) -> dict:
         outlier_sigma=args.outlier_sigma,
         diffuser_drift=args.diffuser_drift,
         angle_chain=args.angle_chain,
+        # only when asked: stores made without the option keep their recorded parameters
+        **({"single_material": True} if args.single_material else {}),
         # None: the scan's recorded diffuser_upstream_m (0 when it has none)
         **({} if args.diffuser_upstream_m is None else {"diffuser_upstream_m": args.diffuser_upstream_m}),
     )
@@ -395,10 +397,19 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--sample-material",
         default="cellulose",
-        help="mist only: the sample's one material, for its delta/beta (xraydb)",
+        help="mist and --single-material: the sample's one material, for its delta/beta (xraydb): cellulose, PMMA, ...",
     )
     p.add_argument(
-        "--sample-delta-over-beta", type=float, help="mist only: the sample's delta/beta (overrides --sample-material)"
+        "--sample-delta-over-beta",
+        type=float,
+        help="mist and --single-material: the sample's delta/beta (overrides --sample-material)",
+    )
+    p.add_argument(
+        "--single-material",
+        action="store_true",
+        help="pwf: the sample is one material (--sample-material): the phase's low frequencies follow its "
+        "attenuation through Paganin's filter; for thick samples with sharp edges (mm rods at um pixels), "
+        "wrong for samples of several materials",
     )
     p.add_argument(
         "--outlier-sigma",

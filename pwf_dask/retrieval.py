@@ -19,6 +19,7 @@ from pwf_dask.physics import optics
 from pwf_dask.physics.detector import DEFAULT_OUTLIER_SIGMA, repair_outliers
 from pwf_dask.physics.geometry import Geometry
 from pwf_dask.physics.materials import delta_beta
+from pwf_dask.physics.single_material import paganin_length_m, single_material_phase
 from pwf_dask.pwf import solver
 
 METHODS = ("pwf", "umpa", "lcs", "gf", "mist")
@@ -314,12 +315,31 @@ def estimate_diffuser(
     )
 
 
-def mist_delta_over_beta(material: str, delta_over_beta: float | None, energy_eV: float) -> float:
-    """The one delta/beta MIST assumes: the given value, else the material's at the energy."""
+def sample_delta_over_beta_of(material: str, delta_over_beta: float | None, energy_eV: float) -> float:
+    """The one delta/beta MIST and PWF's ``single_material`` assume: the given value, else the
+    material's at the energy."""
     if delta_over_beta is not None:
+        if not (math.isfinite(delta_over_beta) and delta_over_beta > 0):
+            raise ValueError(f"sample_delta_over_beta must be positive, got {delta_over_beta}")
         return float(delta_over_beta)
     delta, beta = delta_beta(material, energy_eV)
     return delta / beta
+
+
+def check_single_material(single_material: bool, method: str) -> None:
+    """``single_material`` is PWF's option (MIST assumes one material by construction)."""
+    if single_material and method != "pwf":
+        raise ValueError(f"single_material applies to method 'pwf', not {method!r}")
+
+
+def _single_material_prior(on: bool, material: str, delta_over_beta: float | None, geometry: Geometry) -> dict:
+    """What ``single_material`` records: the ratio and Paganin's filter width, checked before
+    any work."""
+    if not on:
+        return {"single_material": False}
+    ratio = sample_delta_over_beta_of(material, delta_over_beta, geometry.energy_eV)
+    length = paganin_length_m(geometry.wavelength_m, geometry.sample_detector_distance_m, ratio)
+    return {"single_material": True, "sample_delta_over_beta": ratio, "paganin_length_m": length}
 
 
 def _diffuser_kappa(model: str, material: str, beta_over_delta: float | None, energy_eV: float) -> float | None:
@@ -453,6 +473,7 @@ def retrieve_projection(
     field_upsample: int | str = "auto",
     outlier_sigma: float | None = DEFAULT_OUTLIER_SIGMA,
     diffuser_drift: str | tuple[float, float] = "auto",
+    single_material: bool = False,
 ) -> RetrievalResult:
     """Retrieve phase and attenuation from one flat/dark-corrected speckle image (docs/scan-format.md §4).
 
@@ -509,6 +530,12 @@ def retrieve_projection(
         (:mod:`pwf_dask.physics.detector`); None leaves the images untouched.
     diffuser_drift : {"auto", "off"} or (dy, dx)
         Not in the paper: t_r moved to where the diffuser was for the sample frame (Notes).
+    single_material : bool
+        Not in the paper: the sample is one material, ``sample_material`` (xraydb) or
+        ``sample_delta_over_beta``; the phase's low spatial frequencies are then taken from the
+        attenuation through Paganin's filter (:mod:`pwf_dask.physics.single_material`), for
+        thick samples whose sharp edges PWF's pixel grid cannot hold. Off by default: wrong
+        for a sample of several materials.
 
     Returns
     -------
@@ -556,6 +583,7 @@ def retrieve_projection(
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
+    check_single_material(single_material, method)
     if method != "pwf":
         return retrieve_tracking(
             sample,
@@ -570,7 +598,7 @@ def retrieve_projection(
             diffuser_drift=diffuser_drift,
             **(tracking_options or {}),
             **(
-                {"delta_over_beta": mist_delta_over_beta(sample_material, sample_delta_over_beta, energy_eV)}
+                {"delta_over_beta": sample_delta_over_beta_of(sample_material, sample_delta_over_beta, energy_eV)}
                 if method == "mist"
                 else {}
             ),
@@ -588,6 +616,7 @@ def retrieve_projection(
     _check_start(initial, y.shape, restart)
     check_diffuser_drift(diffuser_drift)
     field_upsample = check_field_upsample(field_upsample)
+    prior = _single_material_prior(single_material, sample_material, sample_delta_over_beta, geometry)
     # spikes: the reference is repaired (the diffuser estimate needs every pixel), the
     # sample's are left out of the data term (and repaired for the statistics that read it)
     ref, ref_outliers = repair_outliers(ref, outlier_sigma)
@@ -690,6 +719,15 @@ def retrieve_projection(
     psi = solved.sol.psi[solved.model.frame]
     phase = to_numpy(psi.imag).astype(np.float64)
     attenuation = -to_numpy(psi.real).astype(np.float64)
+    if single_material:  # before the background plane: it is fitted to the phase as kept
+        phase = single_material_phase(
+            phase,
+            attenuation,
+            prior["sample_delta_over_beta"],
+            pixel_size_m=pixel_size_m,
+            wavelength_m=geometry.wavelength_m,
+            distance_m=geometry.sample_detector_distance_m,
+        )
     mask = None
     if zero_background:
         mask = (
@@ -743,6 +781,7 @@ def retrieve_projection(
         "diffuser_drift": diffuser_drift if isinstance(diffuser_drift, str) else "given",
         "diffuser_drift_px": [float(drift[0]), float(drift[1])],
         "diffuser_moved": bool(moved),
+        **prior,
     }
     return RetrievalResult(
         phase=xp.asarray(phase.astype(rdt)),

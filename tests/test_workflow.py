@@ -388,6 +388,33 @@ def test_mist_scan_combines_four_positions_and_records_its_material(tiny_scan, t
     assert np.isfinite(ds["delta"].values).all()
 
 
+def test_single_material_prior_is_recorded_and_kept_on_resume(tiny_scan, tmp_path, capsys):
+    """``--single-material`` reaches PWF with the sample's delta/beta, the store records both,
+    a resume without it is refused, and a bad ratio is refused before anything is written."""
+    recon = tmp_path / "sm.zarr"
+    fast = ["--max-iter", "25", "--tol", "0"]
+    argv = ["retrieve", str(tiny_scan), str(recon), *fast, "--single-material", "--sample-material", "PMMA"]
+    assert cli.main(argv) == 0
+    ds = xr.open_zarr(recon)
+    delta, beta = delta_beta("PMMA", ds.attrs["energy_eV"])
+    assert ds.attrs["single_material"] is True and ds.attrs["sample_material"] == "PMMA"
+    assert ds.attrs["sample_delta_over_beta"] == pytest.approx(delta / beta)
+    capsys.readouterr()
+    assert cli.main(["retrieve", str(tiny_scan), str(recon), *fast]) != 0
+    assert "other parameters (single_material" in capsys.readouterr().err.strip().splitlines()[-1]
+    plain = tmp_path / "plain.zarr"
+    workflow.retrieve_scan(tiny_scan, plain, **FAST)
+    assert xr.open_zarr(plain).attrs["single_material"] is False
+    assert not np.array_equal(ds.phase.values, xr.open_zarr(plain).phase.values)
+    bad = ["retrieve", str(tiny_scan), str(tmp_path / "no.zarr"), "--single-material", "--sample-delta-over-beta", "-5"]
+    assert cli.main(bad) != 0
+    assert "sample_delta_over_beta must be positive" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert not (tmp_path / "no.zarr").exists()
+    assert cli.main(["retrieve", str(tiny_scan), str(tmp_path / "no.zarr"), "--method", "umpa", "--single-material"])
+    assert "single_material applies to method 'pwf', not 'umpa'" in capsys.readouterr().err.strip().splitlines()[-1]
+    assert not (tmp_path / "no.zarr").exists()
+
+
 def test_stages_in_wrong_order_are_refused(tmp_path, capsys):
     assert cli.main(["tomo", str(tmp_path / "none.zarr")]) != 0
     assert "no such reconstruction" in capsys.readouterr().err

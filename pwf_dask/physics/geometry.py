@@ -76,6 +76,11 @@ class Geometry:
         """The distance over which the diffuser's speckle develops before the detector (m)."""
         return self.diffuser_detector_distance_m + self.diffuser_upstream_m
 
+    @property
+    def sample_detector_distance_m(self) -> float:
+        """L1 + L2: the sample's own propagation distance to the detector (m)."""
+        return self.sample_diffuser_distance_m + self.diffuser_detector_distance_m
+
     @classmethod
     def from_attrs(cls, attrs, diffuser_upstream_m: float | None = None) -> Geometry:
         """The geometry a scan store records (docs/scan-format.md §1); ``diffuser_upstream_m``

@@ -32,6 +32,7 @@ from pwf_dask.retrieval import (
     METHODS,
     check_diffuser_drift,
     check_field_upsample,
+    check_single_material,
     check_solver_options,
     parse_alpha,
 )
@@ -369,6 +370,7 @@ def retrieve_scan(
         resolve_device(device)
     check_threshold(outlier_sigma)
     check_diffuser_drift(options.get("diffuser_drift", "auto"))
+    check_single_material(options.get("single_material", False), method)
     angle_chains((), 1, angle_chain)  # a bad length fails here, before anything is written
     # only PWF iterates from a start, and a start the user chose is kept for every projection
     angle_chain = int(angle_chain) if method == "pwf" and "initial" not in options else 1
@@ -453,16 +455,18 @@ def retrieve_scan(
         "scan_fingerprint": integrity.scan_fingerprint(g).encode(),
         "angle_chain": angle_chain,
         "diffuser_model": options.get("diffuser_model", "single-material") if method == "pwf" else "n/a",
+        "single_material": bool(options.get("single_material", False)) if method == "pwf" else "n/a",
         **{
             k: v
             for k, v in options.items()
             if isinstance(v, (int, float, str, bool)) and (method == "mist" or not k.startswith("sample_"))
         },
     }
-    if method == "mist":  # the one material MIST assumes, as used
-        from pwf_dask.retrieval import mist_delta_over_beta
+    if method == "mist" or options.get("single_material"):  # the one material assumed, as used
+        from pwf_dask.retrieval import sample_delta_over_beta_of
 
-        params["sample_delta_over_beta"] = mist_delta_over_beta(
+        params["sample_material"] = options.get("sample_material", "cellulose")
+        params["sample_delta_over_beta"] = sample_delta_over_beta_of(
             options.get("sample_material", "cellulose"), options.get("sample_delta_over_beta"), info.energy_eV
         )
     opts = dict(method=method, max_iter=max_iter, tol=tol, gamma=gamma, alpha=alpha_c, step=step)

@@ -357,6 +357,8 @@ RECON_KEYS = (
     "angle_chain",  # stores made before session 18 lack it and resume with any chain length
     "diffuser_model",
     "diffuser_upstream_m",  # session 19, as angle_chain
+    "single_material",  # session 33, as angle_chain
+    "sample_delta_over_beta",
 )
 
 
