@@ -717,17 +717,18 @@ def retrieve_projection(
     )
     solved = _solve(build, run, model, grid, alpha, psi0, y, scale, excluded)
     psi = solved.sol.psi[solved.model.frame]
-    phase = to_numpy(psi.imag).astype(np.float64)
-    attenuation = -to_numpy(psi.real).astype(np.float64)
-    if single_material:  # before the background plane: it is fitted to the phase as kept
+    phase = psi.imag
+    if single_material:  # on the solver's device and precision, before the background plane
         phase = single_material_phase(
-            phase,
-            attenuation,
+            xp.ascontiguousarray(psi.imag),
+            -psi.real,
             prior["sample_delta_over_beta"],
             pixel_size_m=pixel_size_m,
             wavelength_m=geometry.wavelength_m,
             distance_m=geometry.sample_detector_distance_m,
         )
+    phase = to_numpy(phase).astype(np.float64)
+    attenuation = -to_numpy(psi.real).astype(np.float64)
     mask = None
     if zero_background:
         mask = (

@@ -335,12 +335,14 @@ def test_cupy_matches_numpy(cupy, small_scene):
     [
         {"coherence_length_x_m": None, "coherence_length_y_m": None, "diffuser_drift": "auto"},
         {"initial": "umpa", "field_upsample": 2, "precision": "double"},
+        {"single_material": True, "sample_material": "cellulose"},
     ],
-    ids=["calibrated-drift", "umpa-start-fine-grid-double"],
+    ids=["calibrated-drift", "umpa-start-fine-grid-double", "single-material"],
 )
 def test_cupy_options_match_numpy(cupy, options):
     """The option paths on CuPy: the Siegert calibration, drift estimate, UMPA start,
-    field on a finer grid, double precision (a 96 x 96 frame, 30 iterations)."""
+    field on a finer grid, double precision, the single-material prior (a 96 x 96 frame, 30
+    iterations)."""
     sim = simulate_projection(SpeckleSetup(shape=(96, 96), photons=1e4), seed=2)
     kw = kwargs(sim, max_iter=30, tol=0, **options)
     cpu = retrieve_projection(sim.sample, sim.reference, **kw)
