@@ -12,7 +12,8 @@ Two scenes, PWF with its defaults (calibrated coherence, automatic field grid an
    of 1.5-3.3 mm across a 2220 px strip, the last cut by the frame's edge; crops of 160 and 430
    rows by 700 and 2220 columns, each retrieved as it is and with the single-material prior
    (``single_material=True``, PMMA: the phase's low frequencies from the attenuation).
-   ``--truth-start`` adds a run started from the true psi.
+   ``--truth-start`` adds a run started from the true psi. ``--scenes grits`` retrieves the
+   160 x 2220 crop on P1200 and P2000 sandpaper instead (``frame_size_grits.md``).
 
     python -m benchmarks.frame_size [--scenes beads strip] [--sizes 256 512 1024] [--out benchmarks/results]
 
@@ -43,6 +44,8 @@ STRIP_SETUP = SpeckleSetup(
     photons=1e4,
 )
 STRIP_CROPS = [(160, 700), (430, 700), (160, 2220), (430, 2220)]
+#: coarser and finer sandpaper than the default P3000 for the strip (``--scenes grits``)
+GRITS = ("P1200", "P2000")
 
 
 def phase_gain(recovered: np.ndarray, true: np.ndarray) -> float:
@@ -117,34 +120,38 @@ def beads(sizes: list[int], seed: int = 1, wrong_prior: bool = True) -> list[dic
     return rows
 
 
-def strip(truth_start: bool, seed: int = 1) -> list[dict]:
-    sim = SpeckleSimulator(STRIP_SETUP, seed=seed)
-    sample, phase, attenuation = sim.project(strip_rods(STRIP_SETUP.shape[1], STRIP_SETUP.pixel_size_m))
+def strip(truth_start: bool, seed: int = 1, grit: str | None = None, crops=STRIP_CROPS) -> list[dict]:
+    """The strip regime's crops, each without and with the single-material prior; ``grit``
+    replaces the default P3000 diffuser (the scene is then named by it)."""
+    setup = STRIP_SETUP if grit is None else replace(STRIP_SETUP, diffuser_grit=grit, diffuser_radius_median_m=None)
+    scene = "strip" if grit is None else f"strip, {grit}"
+    sim = SpeckleSimulator(setup, seed=seed)
+    sample, phase, attenuation = sim.project(strip_rods(setup.shape[1], setup.pixel_size_m))
     reference = sim.reference()
     rows = []
-    for ny, nx in STRIP_CROPS:
-        y0 = (STRIP_SETUP.shape[0] - ny) // 2
+    for ny, nx in crops:
+        y0 = (setup.shape[0] - ny) // 2
         crop = np.s_[y0 : y0 + ny, :nx]
         runs = [("zero", {}), ("zero", {"single_material": True, "sample_material": "PMMA"})]
         if truth_start and (ny, nx) == (160, 2220):
             runs.append(("truth", {}))
         for start, options in runs:
             initial = "zero" if start == "zero" else -attenuation[crop] + 1j * phase[crop]
-            r, s = _retrieve(sample[crop], reference[crop], STRIP_SETUP, initial, **options)
-            rows.append(_row("strip", f"{ny} x {nx}", r, s, phase[crop], start))
+            r, s = _retrieve(sample[crop], reference[crop], setup, initial, **options)
+            rows.append(_row(scene, f"{ny} x {nx}", r, s, phase[crop], start))
             print(rows[-1], flush=True)
     return rows
 
 
-def write_markdown(rows: list[dict], path: str) -> None:
+def write_markdown(rows: list[dict], path: str, command: str = "python -m benchmarks.frame_size") -> None:
     head = (
         "| scene | frame | start | prior | phase gain | phase rms error (rad) | iterations | stop | residual % "
         "| field grid | coherence x (µm) | s |"
     )
     lines = [
-        "# Phase gain against frame size",
+        "# Phase gain against frame size" + (" and diffuser grit" if "grits" in command else ""),
         "",
-        f"`python -m benchmarks.frame_size` on {device_name(np)}. PWF defaults (calibrated coherence);",
+        f"`{command}` on {device_name(np)}. PWF defaults (calibrated coherence);",
         "gain = slope of recovered on true phase inside the sample; rms error over the frame, the",
         "recovered background's mean removed. Prior: `single_material=True` with the rods' PMMA",
         "(the phase's low frequencies from the attenuation through Paganin's filter).",
@@ -168,7 +175,13 @@ def write_markdown(rows: list[dict], path: str) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", nargs="+", default=["beads", "strip"], choices=["beads", "strip"])
+    ap.add_argument(
+        "--scenes",
+        nargs="+",
+        default=["beads", "strip"],
+        choices=["beads", "strip", "grits"],
+        help="grits: the 160 x 2220 strip on P1200 and P2000 sandpaper, to frame_size_grits.md",
+    )
     ap.add_argument("--sizes", nargs="+", type=int, default=[256, 512, 1024], help="bead scene frame sizes (px)")
     ap.add_argument("--truth-start", action="store_true", help="also start the 160 x 2220 strip from the truth")
     ap.add_argument("--out", default="benchmarks/results", help="folder for frame_size.md and .csv")
@@ -178,8 +191,13 @@ def main() -> None:
         rows += beads(a.sizes)
     if "strip" in a.scenes:
         rows += strip(a.truth_start)
-    write_rows_csv(a.out, "frame_size.csv", rows)
-    write_markdown(rows, f"{a.out}/frame_size.md")
+    if rows:
+        write_rows_csv(a.out, "frame_size.csv", rows)
+        write_markdown(rows, f"{a.out}/frame_size.md")
+    if "grits" in a.scenes:
+        grit_rows = [row for grit in GRITS for row in strip(False, grit=grit, crops=[(160, 2220)])]
+        write_rows_csv(a.out, "frame_size_grits.csv", grit_rows)
+        write_markdown(grit_rows, f"{a.out}/frame_size_grits.md", "python -m benchmarks.frame_size --scenes grits")
 
 
 if __name__ == "__main__":

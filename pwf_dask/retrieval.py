@@ -720,7 +720,7 @@ def retrieve_projection(
     phase = psi.imag
     if single_material:  # on the solver's device and precision, before the background plane
         phase = single_material_phase(
-            xp.ascontiguousarray(psi.imag),
+            psi.imag,
             -psi.real,
             prior["sample_delta_over_beta"],
             pixel_size_m=pixel_size_m,
