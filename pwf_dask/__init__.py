@@ -2,6 +2,7 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
+from pwf_dask.options import RetrievalOptions
 from pwf_dask.retrieval import RetrievalResult, retrieve_projection
 
 try:
@@ -9,4 +10,4 @@ try:
 except PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0.1.0"
 
-__all__ = ["RetrievalResult", "retrieve_projection", "__version__"]
+__all__ = ["RetrievalOptions", "RetrievalResult", "retrieve_projection", "__version__"]

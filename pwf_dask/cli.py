@@ -331,46 +331,46 @@ def _field_upsample(text: str):
 
 def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     """Every retrieval option of ``retrieve`` and ``run`` (read back by :func:`retrieval_kwargs`)."""
-    from pwf_dask.physics.detector import DEFAULT_OUTLIER_SIGMA
+    from pwf_dask.calibration.diffuser import DIFFUSER_MODELS
+    from pwf_dask.options import DEFAULTS
     from pwf_dask.pipeline.workflow import DEFAULT_ANGLE_CHAIN
-    from pwf_dask.pwf.solver import DEFAULT_ALPHA, DEFAULT_GAMMA, STOP_RULE
 
     p.add_argument(
         "--method",
-        default="pwf",
+        default=DEFAULTS.method,
         choices=["pwf", "lcs", "umpa", "gf", "mist"],
         help="pwf (single shot, the paper's) or a speckle-tracking baseline (K >= 1 positions; docs/validation.md)",
     )
-    p.add_argument("--max-iter", type=int, default=STOP_RULE.max_iter, help="pwf: iterations per projection at most")
-    p.add_argument("--tol", type=float, default=STOP_RULE.tol, help="1 - field correlation of successive iterates")
+    p.add_argument("--max-iter", type=int, default=DEFAULTS.max_iter, help="pwf: iterations per projection at most")
+    p.add_argument("--tol", type=float, default=DEFAULTS.tol, help="1 - field correlation of successive iterates")
     p.add_argument(
         "--gamma",
         type=float,
-        default=DEFAULT_GAMMA,
+        default=DEFAULTS.gamma,
         help="width of the regularization window over the STF (0: no window)",
     )
     p.add_argument(
         "--alpha",
-        default=str(DEFAULT_ALPHA).strip("()"),
+        default=str(DEFAULTS.alpha).strip("()"),
         help="regularization weights: a complex number (default: %(default)s, docs/methods.md), 'paper' "
         "(0.1+0.01j) or 'discrepancy' (Im(alpha) by the discrepancy principle, once per scan)",
     )
     p.add_argument(
         "--phase-scale",
         type=float,
-        default=1.0,
+        default=DEFAULTS.phase_scale,
         help="metric scale kappa of the phase block: faster phase convergence, same solution",
     )
     p.add_argument(
         "--field-upsample",
-        default="auto",
+        default=DEFAULTS.field_upsample,
         type=_field_upsample,
         help="sample field and propagation on a finer grid: auto (1.5x for a diffuser whose spectrum fills the "
         "detector band, 2x more for thick samples), 1 (the paper's detector grid), or a factor such as 1.5 or 2",
     )
     p.add_argument(
         "--coherence-method",
-        default="template",
+        default=DEFAULTS.coherence_method,
         choices=["template", "gaussian"],
         help="pwf: how the coherence lengths are calibrated from the reference when the scan does not give them: "
         "template (the IOTF fitted jointly with the sandpaper's own speckle spectrum) or gaussian (the paper's "
@@ -378,8 +378,8 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--diffuser-model",
-        default="single-material",
-        choices=["single-material", "zero-phase"],
+        default=DEFAULTS.diffuser_model,
+        choices=DIFFUSER_MODELS,
         help="diffuser estimate from the reference: one material fitted (default) or the paper's zero phase",
     )
     p.add_argument(
@@ -391,12 +391,12 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--diffuser-material",
-        default="silicon carbide",
+        default=DEFAULTS.diffuser_material,
         help="the diffuser's material, for its beta/delta (xraydb): silicon carbide, alumina, ...",
     )
     p.add_argument(
         "--sample-material",
-        default="cellulose",
+        default=DEFAULTS.sample_material,
         help="mist and --single-material: the sample's one material, for its delta/beta (xraydb): cellulose, PMMA, ...",
     )
     p.add_argument(
@@ -414,7 +414,7 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--outlier-sigma",
         type=float,
-        default=DEFAULT_OUTLIER_SIGMA,
+        default=DEFAULTS.outlier_sigma,
         help="detector defects: single-pixel spikes and dips (zingers, hot/dead pixels) beyond this many noise "
         "sigmas of all their neighbours are left out (sample) or repaired (reference); 0 keeps every pixel",
     )
@@ -428,7 +428,7 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--diffuser-drift",
-        default="auto",
+        default=DEFAULTS.diffuser_drift,
         help="follow the speckle's drift since the reference (pwf moves its diffuser estimate, the trackers "
         "their reference frames): auto (measure it per frame, correct from 0.05 px), off, or DY,DX in pixels",
     )

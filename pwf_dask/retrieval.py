@@ -6,7 +6,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Any
 
@@ -14,6 +14,7 @@ import numpy as np
 
 from pwf_dask import calibration
 from pwf_dask.backend import FFT, get_array_module, to_numpy
+from pwf_dask.options import DEFAULTS, RetrievalOptions
 from pwf_dask.physics import background as bg
 from pwf_dask.physics import optics
 from pwf_dask.physics.detector import DEFAULT_OUTLIER_SIGMA, repair_outliers
@@ -269,13 +270,13 @@ def estimate_diffuser(
     diffuser_detector_distance_m: float,
     coherence_length_x_m: float,
     coherence_length_y_m: float,
-    pad: int | str = "auto",
-    diffuser_model: str = "single-material",
-    diffuser_material: str = "silicon carbide",
-    diffuser_beta_over_delta: float | None = None,
-    diffuser_refine_iter: int = 25,
-    phase_screen_iter: int = 0,
-    diffuser_upstream_m: float = 0.0,
+    pad: int | str = DEFAULTS.pad,
+    diffuser_model: str = DEFAULTS.diffuser_model,
+    diffuser_material: str = DEFAULTS.diffuser_material,
+    diffuser_beta_over_delta: float | None = DEFAULTS.diffuser_beta_over_delta,
+    diffuser_refine_iter: int = DEFAULTS.diffuser_refine_iter,
+    phase_screen_iter: int = DEFAULTS.phase_screen_iter,
+    diffuser_upstream_m: float = DEFAULTS.diffuser_upstream_m,
     fft_workers: int | None = None,
 ):
     """The diffuser t_r exactly as :func:`retrieve_projection` estimates it with the same
@@ -434,46 +435,10 @@ def retrieve_projection(
     pixel_size_m: float,
     sample_diffuser_distance_m: float,
     diffuser_detector_distance_m: float,
-    method: str = "pwf",
-    max_iter: int = solver.STOP_RULE.max_iter,
-    tol: float = solver.STOP_RULE.tol,
-    gamma: float = solver.DEFAULT_GAMMA,
-    alpha: complex | str = solver.DEFAULT_ALPHA,
-    step: float = solver.DEFAULT_STEP,
-    coherence_length_x_m: float | None = None,
-    coherence_length_y_m: float | None = None,
-    coherence_method: str = "template",
-    coherence_includes_pixel_blur: bool = False,
-    preconditioner: bool = True,
-    precision: str = "single",
-    upsample: int | str = "auto",
-    pad: int | str = "auto",
-    min_iter: int = solver.STOP_RULE.min_iter,
-    patience: int = solver.STOP_RULE.patience,
-    rtol: float = solver.STOP_RULE.rtol,
-    jtol: float = solver.STOP_RULE.jtol,
-    phase_screen_iter: int = 0,
-    diffuser_model: str = "single-material",
-    diffuser_material: str = "silicon carbide",
-    diffuser_beta_over_delta: float | None = None,
-    diffuser_refine_iter: int = 25,
-    diffuser_upstream_m: float = 0.0,
+    options: RetrievalOptions | None = None,
     diffuser=None,
     background_mask=None,
-    zero_background: bool = True,
-    normalization: str = "paper",
-    step_search: bool = True,
-    restart: str = "gradient",
-    phase_scale: float | str = 1.0,
-    fft_workers: int | None = None,
-    tracking_options: dict | None = None,
-    sample_material: str = "cellulose",
-    sample_delta_over_beta: float | None = None,
-    initial: Any = "zero",
-    field_upsample: int | str = "auto",
-    outlier_sigma: float | None = DEFAULT_OUTLIER_SIGMA,
-    diffuser_drift: str | tuple[float, float] = "auto",
-    single_material: bool = False,
+    **keywords,
 ) -> RetrievalResult:
     """Retrieve phase and attenuation from one flat/dark-corrected speckle image (docs/scan-format.md §4).
 
@@ -485,6 +450,13 @@ def retrieve_projection(
         Photon energy and detector pixel size.
     sample_diffuser_distance_m, diffuser_detector_distance_m : float
         L1 and L2 of Eq. (forwardModel); L1 = 0 skips the first propagation.
+    options : RetrievalOptions, optional
+        The options below as one object (:class:`pwf_dask.options.RetrievalOptions`, defaults
+        :data:`pwf_dask.options.DEFAULTS`, each defined there once); keywords given beside it
+        replace its fields.
+    **keywords
+        The options one by one, as named below; a name that is no option is refused in one
+        line naming the nearest option.
     method : {"pwf", "umpa", "lcs", "gf", "mist"}
         PWF, or a speckle-tracking baseline (:func:`retrieve_tracking`; ``tracking_options``,
         ``sample_material`` and ``sample_delta_over_beta`` (MIST) go to it).
@@ -581,220 +553,78 @@ def retrieve_projection(
     Preconditioning filter, Regularization window) and Algorithms S1/S2; docs/methods.md maps
     each to its function.
     """
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
-    check_single_material(single_material, method)
-    if method != "pwf":
-        return retrieve_tracking(
-            sample,
-            reference,
-            method=method,
-            energy_eV=energy_eV,
-            pixel_size_m=pixel_size_m,
-            diffuser_detector_distance_m=diffuser_detector_distance_m,
-            background_mask=background_mask,
-            zero_background=zero_background,
-            outlier_sigma=outlier_sigma,
-            diffuser_drift=diffuser_drift,
-            **(tracking_options or {}),
-            **(
-                {"delta_over_beta": sample_delta_over_beta_of(sample_material, sample_delta_over_beta, energy_eV)}
-                if method == "mist"
-                else {}
-            ),
+    opts = RetrievalOptions.from_keywords(options, **keywords)
+    if opts.method not in METHODS:
+        raise ValueError(f"unknown method {opts.method!r}: choose one of {', '.join(METHODS)}")
+    check_single_material(opts.single_material, opts.method)
+    if opts.method != "pwf":
+        return _retrieve_by_tracking(
+            sample, reference, opts, energy_eV, pixel_size_m, diffuser_detector_distance_m, background_mask
         )
     xp = get_array_module(sample, reference)
     y, ref = _check_pair(sample, reference, xp)
     geometry = Geometry(
-        energy_eV, pixel_size_m, sample_diffuser_distance_m, diffuser_detector_distance_m, diffuser_upstream_m
+        energy_eV, pixel_size_m, sample_diffuser_distance_m, diffuser_detector_distance_m, opts.diffuser_upstream_m
     )
-    optics.check_plausible_geometry(
-        coherence_length_x_m=coherence_length_x_m, coherence_length_y_m=coherence_length_y_m
-    )
-    check_solver_options(max_iter, tol, gamma, step, phase_scale)
-    alpha = parse_alpha(alpha)
-    _check_start(initial, y.shape, restart)
-    check_diffuser_drift(diffuser_drift)
-    field_upsample = check_field_upsample(field_upsample)
-    prior = _single_material_prior(single_material, sample_material, sample_delta_over_beta, geometry)
+    opts, prior, kappa = _checked_pwf_options(opts, y.shape, geometry)
     # spikes: the reference is repaired (the diffuser estimate needs every pixel), the
     # sample's are left out of the data term (and repaired for the statistics that read it)
-    ref, ref_outliers = repair_outliers(ref, outlier_sigma)
-    y, outliers = repair_outliers(y, outlier_sigma)
-    n_outliers = int(outliers.sum())
-    coherence = _coherence(
-        ref,
-        geometry,
-        coherence_length_x_m,
-        coherence_length_y_m,
-        coherence_method,
-        coherence_includes_pixel_blur,
-        diffuser_material,
-    )
-    cx, cy = coherence.x_m, coherence.y_m
-    if pad == "auto":
-        pad = auto_pad(pixel_size_m, geometry.wavelength_m, geometry.speckle_distance_m, cx, cy)
-    if upsample == "auto":
-        upsample = auto_upsample(pixel_size_m, cx, cy)
-    pad, upsample = int(pad), int(upsample)
-    rdt = np.float32 if precision == "single" else np.float64
-    fft = FFT.for_module(xp, fft_workers)
-    shape = computational_shape(y.shape, pad)
+    ref, ref_outliers = repair_outliers(ref, opts.outlier_sigma)
+    y, outliers = repair_outliers(y, opts.outlier_sigma)
+    coherence = _coherence(ref, geometry, opts)
+    opts = _resolved_grids(opts, geometry, coherence)
+    fft = FFT.for_module(xp, opts.fft_workers)
     scale = float(xp.mean(ref))
     if not scale > 0:
         raise ValueError("reference has zero mean intensity")
-    kappa = _diffuser_kappa(diffuser_model, diffuser_material, diffuser_beta_over_delta, energy_eV)
-    if diffuser is None:
-        t = estimate_diffuser(
-            ref,
-            energy_eV=energy_eV,
-            pixel_size_m=pixel_size_m,
-            diffuser_detector_distance_m=diffuser_detector_distance_m,
-            coherence_length_x_m=cx,
-            coherence_length_y_m=cy,
-            pad=pad,
-            diffuser_model=diffuser_model,
-            diffuser_material=diffuser_material,
-            diffuser_beta_over_delta=diffuser_beta_over_delta,
-            diffuser_refine_iter=diffuser_refine_iter,
-            phase_screen_iter=phase_screen_iter,
-            diffuser_upstream_m=geometry.diffuser_upstream_m,
-            fft_workers=fft.workers,
-        )
-    else:
-        t = xp.asarray(diffuser)
-        if t.shape != shape:
-            raise ValueError(f"diffuser has shape {t.shape}, the computational grid is {shape} (pad {pad})")
-    drift, unseen = measured_drift(y, ref, diffuser_drift, fft)
+    t = _transmission(ref, diffuser, opts, geometry, coherence, y.shape, fft)
+    drift, unseen = measured_drift(y, ref, opts.diffuser_drift, fft)
     moved = unseen is not None
-    excluded = outliers if n_outliers else None
+    excluded = outliers if int(outliers.sum()) else None
     if moved:
         t = calibration.shift_transmission(t, drift, fft=fft)
         # the grains that drifted into the frame were never in the reference
         unseen = xp.asarray(unseen)
         excluded = unseen if excluded is None else excluded | unseen
-    build = partial(
-        solver.build_model,
-        t,
-        frame_shape=y.shape,
-        pixel_size_m=pixel_size_m,
-        wavelength=geometry.wavelength_m,
-        sample_diffuser_distance_m=sample_diffuser_distance_m,
-        diffuser_detector_distance_m=diffuser_detector_distance_m,
-        coherence_length_x_m=cx,
-        coherence_length_y_m=cy,
-        pixel_integration=coherence.pixel_integration,
-        gamma=gamma,
-        alpha=solver.PAPER_ALPHA if alpha == "discrepancy" else alpha,  # each rung rebuilds it
-        use_preconditioner=preconditioner,
-        upsample=upsample,
-        pad=pad,
-        precision=precision,
-        normalization=normalization,
-        phase_scale=phase_scale,
-        bad_pixels=excluded,
-        fft=fft,
-    )
-    grid = _first_field_grid(field_upsample, t, pixel_size_m, cx, cy, fft)
+    build = _model_builder(t, y.shape, geometry, coherence, opts, excluded, fft)
+    grid = _first_field_grid(opts.field_upsample, t, pixel_size_m, coherence.x_m, coherence.y_m, fft)
     model = build(field_upsample=grid.field_upsample)
-    y_full = xp.zeros(shape, dtype=rdt)
+    y_full = xp.zeros(model.shape, dtype=model.rdtype)
     y_full[model.frame] = y / scale
     # a UMPA start follows the drift measured above rather than measuring it again
-    start_options = {**(tracking_options or {}), "diffuser_drift": drift if moved else "off"}
-    psi0 = _initial_psi(initial, y, ref, model, energy_eV, pixel_size_m, diffuser_detector_distance_m, start_options)
-    run = partial(
-        solver.pwf,
-        y_full,
-        step=step,
-        max_iter=max_iter,
-        tol=tol,
-        min_iter=min_iter,
-        patience=patience,
-        step_search=step_search,
-        restart=restart,
-        rtol=rtol,
-        jtol=jtol,
+    start_options = {**(opts.tracking_options or {}), "diffuser_drift": drift if moved else "off"}
+    psi0 = _initial_psi(
+        opts.initial, y, ref, model, energy_eV, pixel_size_m, diffuser_detector_distance_m, start_options
     )
-    solved = _solve(build, run, model, grid, alpha, psi0, y, scale, excluded)
-    psi = solved.sol.psi[solved.model.frame]
-    phase = psi.imag
-    if single_material:  # on the solver's device and precision, before the background plane
-        phase = single_material_phase(
-            psi.imag,
-            -psi.real,
-            prior["sample_delta_over_beta"],
-            pixel_size_m=pixel_size_m,
-            wavelength_m=geometry.wavelength_m,
-            distance_m=geometry.sample_detector_distance_m,
-        )
-    phase = to_numpy(phase).astype(np.float64)
-    attenuation = -to_numpy(psi.real).astype(np.float64)
+    solved = _solve(build, _solver_run(y_full, opts), model, grid, opts.alpha, psi0, y, scale, excluded)
+    phase, attenuation = _phase_and_attenuation(solved, opts.single_material, prior, geometry)
     mask = None
-    if zero_background:
-        mask = (
-            np.asarray(to_numpy(background_mask), bool)
-            if background_mask is not None
-            else bg.detect_background(phase, attenuation)
-        )
-        fit = mask if not moved else mask & ~to_numpy(unseen)  # the strips' psi is the regularizer's guess
-        phase = bg.zero_background(phase, fit)
-        attenuation = bg.zero_background(attenuation, fit)
-    res = to_numpy(xp.abs(solved.sol.evaluation.r[solved.model.frame])) * 100.0
-    params = {
-        "method": method,
-        "gamma": gamma,
-        "alpha": str(complex(solved.alpha)).strip("()"),
-        "alpha_rule": "discrepancy" if solved.alpha_trials else "given",
-        "alpha_trials": [[str(a).strip("()"), round(r, 4), n] for a, r, n in solved.alpha_trials or []],
-        "step": step,
-        "step_search": step_search,
-        "restart": restart,
-        "phase_scale": solved.model.phase_scale,
-        "step_final": solved.sol.step,
-        "tol": tol,
-        "max_iter": max_iter,
-        "min_iter": min_iter,
-        "patience": patience,
-        "rtol": rtol,
-        "jtol": jtol,
-        "preconditioner": preconditioner,
-        "precision": precision,
-        "normalization": normalization,
-        "upsample": upsample,
-        "field_upsample": solved.model.field_upsample,
-        "field_upsample_requested": field_upsample,
-        "phase_gradient_rad_per_px": solved.gradient,
-        "diffuser_aliasing": grid.aliasing,
-        "initial": initial if isinstance(initial, str) else "array",
-        "pad": pad,
-        **coherence.parameters(),
-        "diffuser_model": diffuser_model,
-        "diffuser_given": diffuser is not None,
-        "diffuser_beta_over_delta": kappa,
-        "diffuser_refine_iter": diffuser_refine_iter,
-        "diffuser_upstream_m": geometry.diffuser_upstream_m,
-        "restarts": solved.restarts,
-        "backtracks": solved.backtracks,
-        "stop_reason": solved.sol.stop_reason,
-        "outlier_sigma": outlier_sigma,
-        "outlier_pixels": n_outliers,
-        "outlier_pixels_reference": int(ref_outliers.sum()),
-        "diffuser_drift": diffuser_drift if isinstance(diffuser_drift, str) else "given",
-        "diffuser_drift_px": [float(drift[0]), float(drift[1])],
-        "diffuser_moved": bool(moved),
-        **prior,
-    }
+    if opts.zero_background:
+        mask, phase, attenuation = _zeroed_background(phase, attenuation, background_mask, unseen if moved else None)
+    residual_pct = to_numpy(xp.abs(solved.sol.evaluation.r[solved.model.frame])) * 100.0
     return RetrievalResult(
-        phase=xp.asarray(phase.astype(rdt)),
-        attenuation=xp.asarray(attenuation.astype(rdt)),
+        phase=xp.asarray(phase.astype(model.rdtype)),
+        attenuation=xp.asarray(attenuation.astype(model.rdtype)),
         iterations=solved.iterations,
         converged=solved.sol.converged,
-        residual=xp.asarray(res.astype(rdt)),
+        residual=xp.asarray(residual_pct.astype(model.rdtype)),
         residual_rmse=residual_rmse_pct(solved.sol, solved.model, excluded),
         loss_history=solved.history,
-        coherence_length_x_m=float(cx),
-        coherence_length_y_m=float(cy),
-        parameters=params,
+        coherence_length_x_m=float(coherence.x_m),
+        coherence_length_y_m=float(coherence.y_m),
+        parameters=_parameters(
+            opts,
+            solved,
+            grid,
+            coherence,
+            prior,
+            kappa,
+            diffuser_given=diffuser is not None,
+            drift=drift,
+            moved=moved,
+            outliers=int(outliers.sum()),
+            reference_outliers=int(ref_outliers.sum()),
+        ),
         background=mask,
     )
 
@@ -838,9 +668,11 @@ class _Coherence:
         }
 
 
-def _coherence(ref, geometry: Geometry, x_m, y_m, method, includes_pixel_blur, diffuser_material) -> _Coherence:
+def _coherence(ref, geometry: Geometry, opts: RetrievalOptions) -> _Coherence:
     """The given lengths, or those calibrated on the reference speckle (Methods, "IOTF")
     for each one not given."""
+    x_m, y_m = opts.coherence_length_x_m, opts.coherence_length_y_m
+    includes_pixel_blur = opts.coherence_includes_pixel_blur
     fit = None
     if x_m is None or y_m is None:
         fit = calibration.fit_coherence_lengths(
@@ -848,8 +680,8 @@ def _coherence(ref, geometry: Geometry, x_m, y_m, method, includes_pixel_blur, d
             geometry.pixel_size_m,
             energy_eV=geometry.energy_eV,
             diffuser_detector_distance_m=geometry.speckle_distance_m,
-            diffuser_material=diffuser_material,
-            method=method,
+            diffuser_material=opts.diffuser_material,
+            method=opts.coherence_method,
         )
         x_m = fit.x_m if x_m is None else x_m
         y_m = fit.y_m if y_m is None else y_m
@@ -938,6 +770,227 @@ def _solve(build, run, model, grid: _FieldGrid, alpha, psi0, y, scale: float, ex
         solved.restarts += sol.restarts
         solved.backtracks += sol.backtracks
     return solved
+
+
+def _retrieve_by_tracking(
+    sample, reference, opts: RetrievalOptions, energy_eV, pixel_size_m, diffuser_detector_distance_m, background_mask
+) -> RetrievalResult:
+    """A speckle-tracking baseline with the options it shares with PWF (MIST: the material)."""
+    material = {}
+    if opts.method == "mist":
+        ratio = sample_delta_over_beta_of(opts.sample_material, opts.sample_delta_over_beta, energy_eV)
+        material = {"delta_over_beta": ratio}
+    return retrieve_tracking(
+        sample,
+        reference,
+        method=opts.method,
+        energy_eV=energy_eV,
+        pixel_size_m=pixel_size_m,
+        diffuser_detector_distance_m=diffuser_detector_distance_m,
+        background_mask=background_mask,
+        zero_background=opts.zero_background,
+        outlier_sigma=opts.outlier_sigma,
+        diffuser_drift=opts.diffuser_drift,
+        **(opts.tracking_options or {}),
+        **material,
+    )
+
+
+def _checked_pwf_options(
+    opts: RetrievalOptions, image_shape: tuple[int, int], geometry: Geometry
+) -> tuple[RetrievalOptions, dict, float | None]:
+    """PWF's options checked before any work, one line naming the first bad one: the options
+    with ``alpha`` and ``field_upsample`` parsed, the single-material prior's parameters and
+    the diffuser's kappa = beta/delta."""
+    optics.check_plausible_geometry(
+        coherence_length_x_m=opts.coherence_length_x_m, coherence_length_y_m=opts.coherence_length_y_m
+    )
+    check_solver_options(opts.max_iter, opts.tol, opts.gamma, opts.step, opts.phase_scale)
+    alpha = parse_alpha(opts.alpha)
+    _check_start(opts.initial, image_shape, opts.restart)
+    check_diffuser_drift(opts.diffuser_drift)
+    field_upsample = check_field_upsample(opts.field_upsample)
+    prior = _single_material_prior(opts.single_material, opts.sample_material, opts.sample_delta_over_beta, geometry)
+    kappa = _diffuser_kappa(
+        opts.diffuser_model, opts.diffuser_material, opts.diffuser_beta_over_delta, geometry.energy_eV
+    )
+    checked = replace(
+        opts, alpha=alpha, field_upsample=field_upsample, diffuser_upstream_m=geometry.diffuser_upstream_m
+    )
+    return checked, prior, kappa
+
+
+def _resolved_grids(opts: RetrievalOptions, geometry: Geometry, coherence: _Coherence) -> RetrievalOptions:
+    """``pad`` and ``upsample`` as numbers: "auto" reads the speckle's spread and the IOTF."""
+    pad, upsample = opts.pad, opts.upsample
+    if pad == "auto":
+        pad = auto_pad(
+            geometry.pixel_size_m, geometry.wavelength_m, geometry.speckle_distance_m, coherence.x_m, coherence.y_m
+        )
+    if upsample == "auto":
+        upsample = auto_upsample(geometry.pixel_size_m, coherence.x_m, coherence.y_m)
+    return replace(opts, pad=int(pad), upsample=int(upsample))
+
+
+def _transmission(ref, diffuser, opts: RetrievalOptions, geometry: Geometry, coherence: _Coherence, frame_shape, fft):
+    """t_r on the computational grid: the one given, or estimated from the reference
+    (Methods, Diffuser transmission function; :func:`estimate_diffuser`)."""
+    if diffuser is None:
+        return estimate_diffuser(
+            ref,
+            energy_eV=geometry.energy_eV,
+            pixel_size_m=geometry.pixel_size_m,
+            diffuser_detector_distance_m=geometry.diffuser_detector_distance_m,
+            coherence_length_x_m=coherence.x_m,
+            coherence_length_y_m=coherence.y_m,
+            pad=opts.pad,
+            diffuser_model=opts.diffuser_model,
+            diffuser_material=opts.diffuser_material,
+            diffuser_beta_over_delta=opts.diffuser_beta_over_delta,
+            diffuser_refine_iter=opts.diffuser_refine_iter,
+            phase_screen_iter=opts.phase_screen_iter,
+            diffuser_upstream_m=geometry.diffuser_upstream_m,
+            fft_workers=fft.workers,
+        )
+    t = get_array_module(ref).asarray(diffuser)
+    shape = computational_shape(tuple(frame_shape), opts.pad)
+    if t.shape != shape:
+        raise ValueError(f"diffuser has shape {t.shape}, the computational grid is {shape} (pad {opts.pad})")
+    return t
+
+
+def _model_builder(t, frame_shape, geometry: Geometry, coherence: _Coherence, opts: RetrievalOptions, excluded, fft):
+    """:func:`pwf_dask.pwf.solver.build_model` with everything but the field grid (and the
+    discrepancy rule's alpha) fixed: Eq. (forwardModel) with Algorithm S2's filters."""
+    return partial(
+        solver.build_model,
+        t,
+        frame_shape=tuple(frame_shape),
+        pixel_size_m=geometry.pixel_size_m,
+        wavelength=geometry.wavelength_m,
+        sample_diffuser_distance_m=geometry.sample_diffuser_distance_m,
+        diffuser_detector_distance_m=geometry.diffuser_detector_distance_m,
+        coherence_length_x_m=coherence.x_m,
+        coherence_length_y_m=coherence.y_m,
+        pixel_integration=coherence.pixel_integration,
+        gamma=opts.gamma,
+        alpha=solver.PAPER_ALPHA if opts.alpha == "discrepancy" else opts.alpha,  # each rung rebuilds it
+        use_preconditioner=opts.preconditioner,
+        upsample=opts.upsample,
+        pad=opts.pad,
+        precision=opts.precision,
+        normalization=opts.normalization,
+        phase_scale=opts.phase_scale,
+        bad_pixels=excluded,
+        fft=fft,
+    )
+
+
+def _solver_run(y_full, opts: RetrievalOptions):
+    """Algorithm S1 (:func:`pwf_dask.pwf.solver.pwf`) on ``y_full`` with the options' step,
+    momentum restart and stop rule; called with a model and a start."""
+    return partial(
+        solver.pwf,
+        y_full,
+        step=opts.step,
+        max_iter=opts.max_iter,
+        tol=opts.tol,
+        min_iter=opts.min_iter,
+        patience=opts.patience,
+        step_search=opts.step_search,
+        restart=opts.restart,
+        rtol=opts.rtol,
+        jtol=opts.jtol,
+    )
+
+
+def _phase_and_attenuation(solved: _Solved, single_material: bool, prior: dict, geometry: Geometry):
+    """Im psi and -Re psi on the frame, as float64 NumPy; with the single-material prior the
+    phase's low frequencies follow the attenuation (on the solver's device and precision)."""
+    psi = solved.sol.psi[solved.model.frame]
+    phase = psi.imag
+    if single_material:
+        phase = single_material_phase(
+            psi.imag,
+            -psi.real,
+            prior["sample_delta_over_beta"],
+            pixel_size_m=geometry.pixel_size_m,
+            wavelength_m=geometry.wavelength_m,
+            distance_m=geometry.sample_detector_distance_m,
+        )
+    return to_numpy(phase).astype(np.float64), -to_numpy(psi.real).astype(np.float64)
+
+
+def _zeroed_background(phase, attenuation, background_mask, unseen):
+    """(background mask, phase, attenuation) with a plane fitted to the background pixels
+    subtracted (:mod:`pwf_dask.physics.background`); the given mask, else the detected one."""
+    if background_mask is not None:
+        mask = np.asarray(to_numpy(background_mask), bool)
+    else:
+        mask = bg.detect_background(phase, attenuation)
+    fit = mask if unseen is None else mask & ~to_numpy(unseen)  # the strips' psi is the regularizer's guess
+    return mask, bg.zero_background(phase, fit), bg.zero_background(attenuation, fit)
+
+
+def _parameters(
+    opts: RetrievalOptions,
+    solved: _Solved,
+    grid: _FieldGrid,
+    coherence: _Coherence,
+    prior: dict,
+    kappa: float | None,
+    *,
+    diffuser_given: bool,
+    drift,
+    moved: bool,
+    outliers: int,
+    reference_outliers: int,
+) -> dict:
+    """Every choice a PWF retrieval made, given or found (``RetrievalResult.parameters``)."""
+    return {
+        "method": opts.method,
+        "gamma": opts.gamma,
+        "alpha": str(complex(solved.alpha)).strip("()"),
+        "alpha_rule": "discrepancy" if solved.alpha_trials else "given",
+        "alpha_trials": [[str(a).strip("()"), round(r, 4), n] for a, r, n in solved.alpha_trials or []],
+        "step": opts.step,
+        "step_search": opts.step_search,
+        "restart": opts.restart,
+        "phase_scale": solved.model.phase_scale,
+        "step_final": solved.sol.step,
+        "tol": opts.tol,
+        "max_iter": opts.max_iter,
+        "min_iter": opts.min_iter,
+        "patience": opts.patience,
+        "rtol": opts.rtol,
+        "jtol": opts.jtol,
+        "preconditioner": opts.preconditioner,
+        "precision": opts.precision,
+        "normalization": opts.normalization,
+        "upsample": opts.upsample,
+        "field_upsample": solved.model.field_upsample,
+        "field_upsample_requested": opts.field_upsample,
+        "phase_gradient_rad_per_px": solved.gradient,
+        "diffuser_aliasing": grid.aliasing,
+        "initial": opts.initial if isinstance(opts.initial, str) else "array",
+        "pad": opts.pad,
+        **coherence.parameters(),
+        "diffuser_model": opts.diffuser_model,
+        "diffuser_given": diffuser_given,
+        "diffuser_beta_over_delta": kappa,
+        "diffuser_refine_iter": opts.diffuser_refine_iter,
+        "diffuser_upstream_m": opts.diffuser_upstream_m,
+        "restarts": solved.restarts,
+        "backtracks": solved.backtracks,
+        "stop_reason": solved.sol.stop_reason,
+        "outlier_sigma": opts.outlier_sigma,
+        "outlier_pixels": outliers,
+        "outlier_pixels_reference": reference_outliers,
+        "diffuser_drift": opts.diffuser_drift if isinstance(opts.diffuser_drift, str) else "given",
+        "diffuser_drift_px": [float(drift[0]), float(drift[1])],
+        "diffuser_moved": bool(moved),
+        **prior,
+    }
 
 
 def retrieve_tracking(

@@ -16,6 +16,7 @@ NUMERICS = (
     "baselines",
     "tomo",
     "retrieval",
+    "options",
     "simulation/phantoms",
     "simulation/speckle",
 )

@@ -20,6 +20,7 @@ import numpy as np
 from scipy import ndimage
 
 from pwf_dask.backend import get_array_module, to_numpy
+from pwf_dask.physics.diffusers import DEFAULT_MATERIAL
 
 
 def _axis_power_spectra(img: np.ndarray):
@@ -104,6 +105,8 @@ TEMPLATE_RADII_M = tuple(0.5e-6 * 2 ** (k / 4) for k in range(21))
 TEMPLATE_SEEDS = (1, 2)
 #: methods of :func:`fit_coherence_lengths`
 COHERENCE_METHODS = ("template", "gaussian")
+#: the calibration every caller defaults to: the IOTF fitted with the diffuser's own spectrum
+DEFAULT_COHERENCE_METHOD = "template"
 
 
 def _tiles(shape: tuple[int, int], tile: tuple[int, int]):
@@ -295,8 +298,8 @@ def fit_coherence_lengths(
     *,
     energy_eV: float | None = None,
     diffuser_detector_distance_m: float | None = None,
-    diffuser_material: str = "silicon carbide",
-    method: str = "template",
+    diffuser_material: str = DEFAULT_MATERIAL,
+    method: str = DEFAULT_COHERENCE_METHOD,
 ) -> CoherenceFit:
     """Coherence lengths (x_coh, y_coh) from the reference speckle (Methods, IOTF).
 

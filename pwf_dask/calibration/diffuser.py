@@ -19,6 +19,9 @@ from pwf_dask.backend import FFT, get_array_module
 from pwf_dask.calibration.coherence import noise_to_signal
 from pwf_dask.physics import optics
 
+#: L-BFGS iterations of the single-material fit (:func:`single_material_diffuser`)
+REFINE_ITER = 25
+
 
 def diffuser_transmission(
     reference,
@@ -34,7 +37,7 @@ def diffuser_transmission(
     phase_screen_iter: int = 0,
     diffuser_model: str = "zero-phase",
     beta_over_delta: float | None = None,
-    refine_iter: int = 25,
+    refine_iter: int = REFINE_ITER,
     upstream_m: float = 0.0,
     fft: FFT | None = None,
 ):
@@ -240,7 +243,7 @@ def single_material_diffuser(
     pad: int = 0,
     shape: tuple[int, int] | None = None,
     nsr: float | None = None,
-    iterations: int = 25,
+    iterations: int = REFINE_ITER,
     fft: FFT | None = None,
 ) -> DiffuserEstimate:
     """Diffuser transmission t_r = exp(-(kappa + i) theta_r) of one material (kappa = beta/delta)

@@ -23,11 +23,12 @@ import numpy as np
 from pwf_dask import __version__, calibration
 from pwf_dask.backend import resolve_device, to_numpy
 from pwf_dask.baselines.tracking import MIN_POSITIONS
-from pwf_dask.physics.detector import DEFAULT_OUTLIER_SIGMA, check_threshold, repair_outliers
+from pwf_dask.options import DEFAULTS, check_option_names
+from pwf_dask.physics.detector import check_threshold, repair_outliers
 from pwf_dask.physics.geometry import Geometry
 from pwf_dask.physics.optics import wavelength_m
 from pwf_dask.pipeline.cluster import Runner, check_scheduler, worker_fft_threads
-from pwf_dask.pwf.solver import DEFAULT_ALPHA, DEFAULT_GAMMA, DEFAULT_STEP, PAPER_ALPHA, STOP_RULE
+from pwf_dask.pwf.solver import PAPER_ALPHA
 from pwf_dask.retrieval import (
     METHODS,
     check_diffuser_drift,
@@ -88,8 +89,9 @@ def _fit_diffuser(reference, attrs, coherence, options, fft_workers):
     from pwf_dask import retrieval
 
     chosen = {k: options[k] for k in _DIFFUSER_OPTIONS if k in options}
+    repaired, _ = repair_outliers(reference, options.get("outlier_sigma", DEFAULTS.outlier_sigma))
     return retrieval.estimate_diffuser(
-        repair_outliers(reference, options.get("outlier_sigma", DEFAULT_OUTLIER_SIGMA))[0],  # the fit reads every pixel
+        repaired,  # the fit reads every pixel
         energy_eV=float(attrs["energy_eV"]),
         pixel_size_m=float(attrs["pixel_size_m"]),
         diffuser_detector_distance_m=float(attrs["diffuser_detector_distance_m"]),
@@ -178,7 +180,7 @@ def _position_diffuser(scan_path, recon_path, p, reference, attrs, coherence, op
     """Position p's diffuser for a projection task: the stored fit (one read per worker), or
     a fit of this worker's own where the store has none."""
     chosen = {k: options[k] for k in _DIFFUSER_OPTIONS if k in options}
-    repair = options.get("outlier_sigma", DEFAULT_OUTLIER_SIGMA)
+    repair = options.get("outlier_sigma", DEFAULTS.outlier_sigma)
     key = (str(scan_path), str(recon_path), p, tuple(coherence), device, repair, tuple(sorted(chosen.items())))
     with _DIFFUSERS_LOCK:  # threads of one worker wait for the one read or fit
         if key not in _DIFFUSERS:
@@ -343,14 +345,14 @@ def retrieve_scan(
     *,
     scheduler: str = "threads",
     device: str = "cpu",
-    method: str = "pwf",
-    max_iter: int = STOP_RULE.max_iter,
-    tol: float = STOP_RULE.tol,
-    gamma: float = DEFAULT_GAMMA,
-    alpha=DEFAULT_ALPHA,
-    step: float = DEFAULT_STEP,
-    precision: str = "single",
-    outlier_sigma: float | None = DEFAULT_OUTLIER_SIGMA,
+    method: str = DEFAULTS.method,
+    max_iter: int = DEFAULTS.max_iter,
+    tol: float = DEFAULTS.tol,
+    gamma: float = DEFAULTS.gamma,
+    alpha=DEFAULTS.alpha,
+    step: float = DEFAULTS.step,
+    precision: str = DEFAULTS.precision,
+    outlier_sigma: float | None = DEFAULTS.outlier_sigma,
     angle_chain: int = DEFAULT_ANGLE_CHAIN,
     runner: Runner | None = None,
     **options,
@@ -358,9 +360,12 @@ def retrieve_scan(
     """Retrieval stage: every missing (position, angle) projection, one task per chain of
     ``angle_chain`` projections (PWF; :func:`angle_chains`), one per projection otherwise.
 
-    ``outlier_sigma`` is the detector-defect threshold of :func:`retrieve_projection`; the
-    references are repaired with it before the coherence fit and the diffuser estimate.
+    ``options`` are further options of :func:`retrieve_projection`
+    (:class:`pwf_dask.options.RetrievalOptions`). ``outlier_sigma`` is the detector-defect
+    threshold of :func:`retrieve_projection`; the references are repaired with it before the
+    coherence fit and the diffuser estimate.
     """
+    check_option_names(options)  # a misspelt option fails here, not in every task
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
     check_scheduler(scheduler)
@@ -369,13 +374,13 @@ def retrieve_scan(
     if "://" not in scheduler:  # tasks run on this host: fail early on --device gpu without CuPy
         resolve_device(device)
     check_threshold(outlier_sigma)
-    check_diffuser_drift(options.get("diffuser_drift", "auto"))
-    check_single_material(options.get("single_material", False), method)
+    check_diffuser_drift(options.get("diffuser_drift", DEFAULTS.diffuser_drift))
+    check_single_material(options.get("single_material", DEFAULTS.single_material), method)
     angle_chains((), 1, angle_chain)  # a bad length fails here, before anything is written
     # only PWF iterates from a start, and a start the user chose is kept for every projection
     angle_chain = int(angle_chain) if method == "pwf" and "initial" not in options else 1
     alpha_c = parse_alpha(alpha)
-    check_solver_options(max_iter, tol, gamma, step, options.get("phase_scale", 1.0))
+    check_solver_options(max_iter, tol, gamma, step, options.get("phase_scale", DEFAULTS.phase_scale))
     if "field_upsample" in options:
         options["field_upsample"] = check_field_upsample(options["field_upsample"])
     ds, info = scan_io.open_scan(scan_path)
@@ -401,8 +406,8 @@ def retrieve_scan(
                 geometry.pixel_size_m,
                 energy_eV=geometry.energy_eV,
                 diffuser_detector_distance_m=geometry.speckle_distance_m,
-                diffuser_material=options.get("diffuser_material", "silicon carbide"),
-                method=options.get("coherence_method", "template"),
+                diffuser_material=options.get("diffuser_material", DEFAULTS.diffuser_material),
+                method=options.get("coherence_method", DEFAULTS.coherence_method),
             )
             fits.append(fit)
             fit_seconds.append(time.perf_counter() - started)
@@ -454,8 +459,8 @@ def retrieve_scan(
         "pwf_dask_version": __version__,
         "scan_fingerprint": integrity.scan_fingerprint(g).encode(),
         "angle_chain": angle_chain,
-        "diffuser_model": options.get("diffuser_model", "single-material") if method == "pwf" else "n/a",
-        "single_material": bool(options.get("single_material", False)) if method == "pwf" else "n/a",
+        "diffuser_model": options.get("diffuser_model", DEFAULTS.diffuser_model) if method == "pwf" else "n/a",
+        "single_material": bool(options.get("single_material", DEFAULTS.single_material)) if method == "pwf" else "n/a",
         **{
             k: v
             for k, v in options.items()
@@ -465,9 +470,11 @@ def retrieve_scan(
     if method == "mist" or options.get("single_material"):  # the one material assumed, as used
         from pwf_dask.retrieval import sample_delta_over_beta_of
 
-        params["sample_material"] = options.get("sample_material", "cellulose")
+        params["sample_material"] = options.get("sample_material", DEFAULTS.sample_material)
         params["sample_delta_over_beta"] = sample_delta_over_beta_of(
-            options.get("sample_material", "cellulose"), options.get("sample_delta_over_beta"), info.energy_eV
+            options.get("sample_material", DEFAULTS.sample_material),
+            options.get("sample_delta_over_beta"),
+            info.energy_eV,
         )
     opts = dict(method=method, max_iter=max_iter, tol=tol, gamma=gamma, alpha=alpha_c, step=step)
     opts.update(precision=precision, outlier_sigma=outlier_sigma, **options)
