@@ -365,24 +365,11 @@ def retrieve_scan(
     threshold of :func:`retrieve_projection`; the references are repaired with it before the
     coherence fit and the diffuser estimate.
     """
-    check_option_names(options)  # a misspelt option fails here, not in every task
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
-    check_scheduler(scheduler)
+    angle_chain, alpha_c = _checked_scan_options(
+        method, scheduler, device, max_iter, tol, gamma, alpha, step, outlier_sigma, angle_chain, options
+    )
     # tasks may run in other working directories (distributed workers)
     scan_path, recon_path = str(Path(scan_path).resolve()), str(Path(recon_path).resolve())
-    if "://" not in scheduler:  # tasks run on this host: fail early on --device gpu without CuPy
-        resolve_device(device)
-    check_threshold(outlier_sigma)
-    check_diffuser_drift(options.get("diffuser_drift", DEFAULTS.diffuser_drift))
-    check_single_material(options.get("single_material", DEFAULTS.single_material), method)
-    angle_chains((), 1, angle_chain)  # a bad length fails here, before anything is written
-    # only PWF iterates from a start, and a start the user chose is kept for every projection
-    angle_chain = int(angle_chain) if method == "pwf" and "initial" not in options else 1
-    alpha_c = parse_alpha(alpha)
-    check_solver_options(max_iter, tol, gamma, step, options.get("phase_scale", DEFAULTS.phase_scale))
-    if "field_upsample" in options:
-        options["field_upsample"] = check_field_upsample(options["field_upsample"])
     ds, info = scan_io.open_scan(scan_path)
     # the scan's recorded geometry unless the caller gave the upstream distance (PWF reads it)
     geometry = Geometry.from_attrs(
@@ -395,30 +382,12 @@ def retrieve_scan(
             f"method {method} needs K >= {MIN_POSITIONS[method]} diffuser positions; the scan has {info.n_positions}"
         )
     g, flat, dark, corrected = _scan_frames(scan_path)
-    coherence, fits, fit_seconds = [], [], []
-    for p in range(info.n_positions if method == "pwf" else 0):
-        cx, cy = info.coherence_length_x_m, info.coherence_length_y_m
-        if cx is None or cy is None:
-            ref = _read_reference(g, p, flat, dark, corrected, outlier_sigma)
-            started = time.perf_counter()
-            fit = calibration.fit_coherence_lengths(
-                ref,
-                geometry.pixel_size_m,
-                energy_eV=geometry.energy_eV,
-                diffuser_detector_distance_m=geometry.speckle_distance_m,
-                diffuser_material=options.get("diffuser_material", DEFAULTS.diffuser_material),
-                method=options.get("coherence_method", DEFAULTS.coherence_method),
-            )
-            fits.append(fit)
-            fit_seconds.append(time.perf_counter() - started)
-            cx = fit.x_m if cx is None else cx
-            cy = fit.y_m if cy is None else cy
-        coherence.append((float(cx), float(cy)))
+    coherence, fits = [(float("nan"), float("nan"))] * info.n_positions, []  # the trackers use no coherence model
+    if method == "pwf":
+        coherence, fits = _position_coherence(g, info, geometry, flat, dark, corrected, outlier_sigma, options)
     if fits:
         # the tasks are given the lengths: they must know whether the pixel's blur is in them
-        options["coherence_includes_pixel_blur"] = fits[0].includes_pixel_blur
-    if method != "pwf":
-        coherence = [(float("nan"), float("nan"))] * info.n_positions
+        options["coherence_includes_pixel_blur"] = fits[0][0].includes_pixel_blur
     alpha_rule, alpha_trials = "given", "n/a"
     if alpha_c == "discrepancy" and method == "pwf":
         probe = dict(method=method, max_iter=max_iter, tol=tol, gamma=gamma, step=step, precision=precision)
@@ -443,39 +412,12 @@ def retrieve_scan(
         "precision": precision,
         "outlier_sigma": float(outlier_sigma or 0),
         "device": device,
-        # "n/a": the speckle-tracking baselines use no coherence model
-        "coherence_length_x_m": float(np.mean([c[0] for c in coherence])) if method == "pwf" else "n/a",
-        "coherence_length_y_m": float(np.mean([c[1] for c in coherence])) if method == "pwf" else "n/a",
-        "coherence_lengths_per_position_m": json.dumps(coherence) if method == "pwf" else "n/a",
-        "coherence_calibrated": info.coherence_length_x_m is None or info.coherence_length_y_m is None,
-        "coherence_fits_per_position": json.dumps(
-            [
-                {"method": f.method, "template": f.template, "grain_radius_m": f.grain_radius_m, "seconds": round(t, 3)}
-                for f, t in zip(fits, fit_seconds)
-            ]
-        )
-        if fits
-        else "n/a",
+        **_coherence_record(method, coherence, fits, info),
         "pwf_dask_version": __version__,
         "scan_fingerprint": integrity.scan_fingerprint(g).encode(),
         "angle_chain": angle_chain,
-        "diffuser_model": options.get("diffuser_model", DEFAULTS.diffuser_model) if method == "pwf" else "n/a",
-        "single_material": bool(options.get("single_material", DEFAULTS.single_material)) if method == "pwf" else "n/a",
-        **{
-            k: v
-            for k, v in options.items()
-            if isinstance(v, (int, float, str, bool)) and (method == "mist" or not k.startswith("sample_"))
-        },
+        **_model_record(method, options, info.energy_eV),
     }
-    if method == "mist" or options.get("single_material"):  # the one material assumed, as used
-        from pwf_dask.retrieval import sample_delta_over_beta_of
-
-        params["sample_material"] = options.get("sample_material", DEFAULTS.sample_material)
-        params["sample_delta_over_beta"] = sample_delta_over_beta_of(
-            options.get("sample_material", DEFAULTS.sample_material),
-            options.get("sample_delta_over_beta"),
-            info.energy_eV,
-        )
     opts = dict(method=method, max_iter=max_iter, tol=tol, gamma=gamma, alpha=alpha_c, step=step)
     opts.update(precision=precision, outlier_sigma=outlier_sigma, **options)
     own = runner is None
@@ -485,6 +427,105 @@ def retrieve_scan(
     finally:
         if own:
             runner.close()
+
+
+def _checked_scan_options(
+    method, scheduler, device, max_iter, tol, gamma, alpha, step, outlier_sigma, angle_chain, options: dict
+):
+    """The retrieval stage's options checked before anything is read or written, each refused
+    in one line naming it: returns the chain length used and alpha parsed; a given field grid
+    is replaced in ``options`` by its checked value."""
+    check_option_names(options)  # a misspelt option fails here, not in every task
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
+    check_scheduler(scheduler)
+    if "://" not in scheduler:  # tasks run on this host: fail early on --device gpu without CuPy
+        resolve_device(device)
+    check_threshold(outlier_sigma)
+    check_diffuser_drift(options.get("diffuser_drift", DEFAULTS.diffuser_drift))
+    check_single_material(options.get("single_material", DEFAULTS.single_material), method)
+    angle_chains((), 1, angle_chain)  # a bad length fails here, before anything is written
+    # only PWF iterates from a start, and a start the user chose is kept for every projection
+    angle_chain = int(angle_chain) if method == "pwf" and "initial" not in options else 1
+    alpha_c = parse_alpha(alpha)
+    check_solver_options(max_iter, tol, gamma, step, options.get("phase_scale", DEFAULTS.phase_scale))
+    if "field_upsample" in options:
+        options["field_upsample"] = check_field_upsample(options["field_upsample"])
+    return angle_chain, alpha_c
+
+
+def _position_coherence(g, info, geometry: Geometry, flat, dark, corrected, outlier_sigma, options: dict):
+    """Each diffuser position's coherence lengths (x, y): the scan's, or calibrated on the
+    position's repaired reference (Methods, IOTF); and the fits made, each with its seconds."""
+    coherence, fits = [], []
+    for p in range(info.n_positions):
+        cx, cy = info.coherence_length_x_m, info.coherence_length_y_m
+        if cx is None or cy is None:
+            ref = _read_reference(g, p, flat, dark, corrected, outlier_sigma)
+            started = time.perf_counter()
+            fit = calibration.fit_coherence_lengths(
+                ref,
+                geometry.pixel_size_m,
+                energy_eV=geometry.energy_eV,
+                diffuser_detector_distance_m=geometry.speckle_distance_m,
+                diffuser_material=options.get("diffuser_material", DEFAULTS.diffuser_material),
+                method=options.get("coherence_method", DEFAULTS.coherence_method),
+            )
+            fits.append((fit, time.perf_counter() - started))
+            cx = fit.x_m if cx is None else cx
+            cy = fit.y_m if cy is None else cy
+        coherence.append((float(cx), float(cy)))
+    return coherence, fits
+
+
+def _coherence_record(method: str, coherence, fits, info) -> dict:
+    """The coherence lengths a store was retrieved with and how each was found ("n/a": the
+    speckle-tracking baselines use no coherence model)."""
+    if method != "pwf":
+        return {
+            "coherence_length_x_m": "n/a",
+            "coherence_length_y_m": "n/a",
+            "coherence_lengths_per_position_m": "n/a",
+            "coherence_calibrated": info.coherence_length_x_m is None or info.coherence_length_y_m is None,
+            "coherence_fits_per_position": "n/a",
+        }
+    return {
+        "coherence_length_x_m": float(np.mean([c[0] for c in coherence])),
+        "coherence_length_y_m": float(np.mean([c[1] for c in coherence])),
+        "coherence_lengths_per_position_m": json.dumps(coherence),
+        "coherence_calibrated": info.coherence_length_x_m is None or info.coherence_length_y_m is None,
+        "coherence_fits_per_position": json.dumps(
+            [
+                {"method": f.method, "template": f.template, "grain_radius_m": f.grain_radius_m, "seconds": round(t, 3)}
+                for f, t in fits
+            ]
+        )
+        if fits
+        else "n/a",
+    }
+
+
+def _model_record(method: str, options: dict, energy_eV: float) -> dict:
+    """The diffuser model, the single-material prior, the further options given (numbers,
+    strings, flags) and the one sample material assumed (MIST, the prior), as used."""
+    record = {
+        "diffuser_model": options.get("diffuser_model", DEFAULTS.diffuser_model) if method == "pwf" else "n/a",
+        "single_material": bool(options.get("single_material", DEFAULTS.single_material)) if method == "pwf" else "n/a",
+        **{
+            k: v
+            for k, v in options.items()
+            if isinstance(v, (int, float, str, bool)) and (method == "mist" or not k.startswith("sample_"))
+        },
+    }
+    if method == "mist" or options.get("single_material"):
+        from pwf_dask.retrieval import sample_delta_over_beta_of
+
+        material = options.get("sample_material", DEFAULTS.sample_material)
+        record["sample_material"] = material
+        record["sample_delta_over_beta"] = sample_delta_over_beta_of(
+            material, options.get("sample_delta_over_beta"), energy_eV
+        )
+    return record
 
 
 def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, coherence, angle_chain) -> dict:
