@@ -571,6 +571,7 @@ def retrieve_projection(
     # sample's are left out of the data term (and repaired for the statistics that read it)
     ref, ref_outliers = repair_outliers(ref, opts.outlier_sigma)
     y, outliers = repair_outliers(y, opts.outlier_sigma)
+    n_outliers = int(outliers.sum())
     coherence = _coherence(ref, geometry, opts)
     opts = _resolved_grids(opts, geometry, coherence)
     fft = FFT.for_module(xp, opts.fft_workers)
@@ -580,7 +581,7 @@ def retrieve_projection(
     t = _transmission(ref, diffuser, opts, geometry, coherence, y.shape, fft)
     drift, unseen = measured_drift(y, ref, opts.diffuser_drift, fft)
     moved = unseen is not None
-    excluded = outliers if int(outliers.sum()) else None
+    excluded = outliers if n_outliers else None
     if moved:
         t = calibration.shift_transmission(t, drift, fft=fft)
         # the grains that drifted into the frame were never in the reference
@@ -622,7 +623,7 @@ def retrieve_projection(
             diffuser_given=diffuser is not None,
             drift=drift,
             moved=moved,
-            outliers=int(outliers.sum()),
+            outliers=n_outliers,
             reference_outliers=int(ref_outliers.sum()),
         ),
         background=mask,
