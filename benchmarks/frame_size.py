@@ -14,6 +14,10 @@ Two scenes, PWF with its defaults (calibrated coherence, automatic field grid an
    (``single_material=True``, PMMA: the phase's low frequencies from the attenuation).
    ``--truth-start`` adds a run started from the true psi. ``--scenes grits`` retrieves the
    160 x 2220 crop on P1200 and P2000 sandpaper instead (``frame_size_grits.md``).
+3. ``camera`` (``frame_size_camera.md``): the ``paper`` preset's first projection on the whole
+   2160 x 2560 camera frame (the paper's geometry and diffuser, its cellulose rod 0.96 mm
+   across with glass beads 50-106 um across), retrieved whole and as centred crops of 540 and
+   1080 rows: the same sample, more of its length in the frame, its full width in every crop.
 
     python -m benchmarks.frame_size [--scenes beads strip] [--sizes 256 512 1024] [--out benchmarks/results]
 
@@ -31,6 +35,7 @@ import numpy as np
 from benchmarks.reporting import device_name, write_rows_csv
 from pwf_dask.retrieval import retrieve_projection
 from pwf_dask.simulation import GEOMETRY_KEYS, Rods, SpeckleSetup, SpeckleSimulator, default_phantom
+from pwf_dask.simulation.phantoms import PAPER_BEAD_RADIUS_M, scan_phantom
 
 STRIP_SETUP = SpeckleSetup(
     shape=(430, 2220),
@@ -143,18 +148,46 @@ def strip(truth_start: bool, seed: int = 1, grit: str | None = None, crops=STRIP
     return rows
 
 
+#: ``camera``: centred row crops of the 2160 x 2560 frame, each holding the rod's full width and background
+CAMERA_CROPS = [(540, 2560), (1080, 2560), (2160, 2560)]
+
+
+def camera(seed: int = 0, crops=CAMERA_CROPS) -> list[dict]:
+    """The ``paper`` preset's projection at 0 degrees on the whole camera frame and its crops."""
+    setup = replace(SpeckleSetup(), shape=CAMERA_CROPS[-1])
+    phantom = scan_phantom(setup.shape, setup.pixel_size_m, seed, bead_radius_range_m=PAPER_BEAD_RADIUS_M)
+    sim = SpeckleSimulator(setup, seed=seed)
+    sample, phase, _ = sim.project(phantom)
+    reference = sim.reference()
+    del sim
+    rows = []
+    for ny, nx in crops:
+        y0, x0 = (setup.shape[0] - ny) // 2, (setup.shape[1] - nx) // 2
+        crop = np.s_[y0 : y0 + ny, x0 : x0 + nx]
+        r, s = _retrieve(sample[crop], reference[crop], setup)
+        rows.append(_row("paper preset", f"{ny} x {nx}", r, s, phase[crop]))
+        print(rows[-1], flush=True)
+    return rows
+
+
 def write_markdown(rows: list[dict], path: str, command: str = "python -m benchmarks.frame_size") -> None:
     head = (
         "| scene | frame | start | prior | phase gain | phase rms error (rad) | iterations | stop | residual % "
         "| field grid | coherence x (µm) | s |"
     )
+    title = {"grits": " and diffuser grit", "camera": " up to the camera's 2160 x 2560"}
     lines = [
-        "# Phase gain against frame size" + (" and diffuser grit" if "grits" in command else ""),
+        "# Phase gain against frame size" + next((t for k, t in title.items() if k in command), ""),
         "",
         f"`{command}` on {device_name(np)}. PWF defaults (calibrated coherence);",
         "gain = slope of recovered on true phase inside the sample; rms error over the frame, the",
-        "recovered background's mean removed. Prior: `single_material=True` with the rods' PMMA",
-        "(the phase's low frequencies from the attenuation through Paganin's filter).",
+        "recovered background's mean removed."
+        + (
+            " Prior: `single_material=True` with the rods' PMMA (the phase's low frequencies from"
+            " the attenuation through Paganin's filter)."
+            if any(r["prior"] != "none" for r in rows)
+            else ""
+        ),
         "",
         head,
         "|" + "---|" * 12,
@@ -179,8 +212,9 @@ def main() -> None:
         "--scenes",
         nargs="+",
         default=["beads", "strip"],
-        choices=["beads", "strip", "grits"],
-        help="grits: the 160 x 2220 strip on P1200 and P2000 sandpaper, to frame_size_grits.md",
+        choices=["beads", "strip", "grits", "camera"],
+        help="grits: the 160 x 2220 strip on P1200 and P2000 sandpaper, to frame_size_grits.md; "
+        "camera: the paper preset on the whole 2160 x 2560 frame and two row crops, to frame_size_camera.md",
     )
     ap.add_argument("--sizes", nargs="+", type=int, default=[256, 512, 1024], help="bead scene frame sizes (px)")
     ap.add_argument("--truth-start", action="store_true", help="also start the 160 x 2220 strip from the truth")
@@ -198,6 +232,10 @@ def main() -> None:
         grit_rows = [row for grit in GRITS for row in strip(False, grit=grit, crops=[(160, 2220)])]
         write_rows_csv(a.out, "frame_size_grits.csv", grit_rows)
         write_markdown(grit_rows, f"{a.out}/frame_size_grits.md", "python -m benchmarks.frame_size --scenes grits")
+    if "camera" in a.scenes:
+        camera_rows = camera()
+        write_rows_csv(a.out, "frame_size_camera.csv", camera_rows)
+        write_markdown(camera_rows, f"{a.out}/frame_size_camera.md", "python -m benchmarks.frame_size --scenes camera")
 
 
 if __name__ == "__main__":
