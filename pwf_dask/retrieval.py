@@ -1029,36 +1029,16 @@ def retrieve_tracking(
     from pwf_dask.baselines import tracking
 
     xp = get_array_module(sample, reference)
-    s = xp.asarray(sample, dtype=xp.float64)
-    r = xp.asarray(reference, dtype=xp.float64)
-    if s.shape != r.shape or s.ndim not in (2, 3):
-        raise ValueError(f"sample {s.shape} and reference {r.shape} must be equal (y, x) or (K, y, x) stacks")
+    s, r = _checked_tracking_frames(sample, reference, xp)
     check_diffuser_drift(diffuser_drift)
-    for name, a in (("sample", s), ("reference", r)):
-        if not bool(xp.all(xp.isfinite(a))):
-            raise ValueError(f"{name} has non-finite values (NaN or inf)")
-        if bool(xp.any(a < 0)):
-            raise ValueError(f"{name} has negative values: pass flat/dark-corrected intensities")
     s, s_outliers = repair_outliers(s, outlier_sigma)
     r, r_outliers = repair_outliers(r, outlier_sigma)
     scale = float(xp.mean(r))
     s, r = s / scale, r / scale
     single = s.ndim == 2
     s, r = (s[None], r[None]) if single else (s, r)
-    drifts, unseen = [], np.zeros(s.shape[1:], bool)
-    for k in range(s.shape[0]):
-        d, strips = measured_drift(s[k], r[k], diffuser_drift)
-        drifts.append(d)
-        if strips is not None:
-            r[k] = xp.maximum(calibration.shift_transmission(r[k].astype(xp.complex128), d).real, 0.0)
-            unseen |= strips
-        elif diffuser_drift == "auto" and k == 0:
-            # a still first position vouches for the rest: an estimate costs about what LCS
-            # spends on a position (0.37 s against 0.22 s for LCS K = 12 at 256^2 with all 12)
-            break
-    # the unseen strips lie along the edges: what is left is a rectangle
-    rows, cols = np.flatnonzero(~unseen.all(axis=1)), np.flatnonzero(~unseen.all(axis=0))
-    window = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    drifts, unseen = _drift_corrected_references(s, r, diffuser_drift, xp)
+    window = _seen_window(unseen)
     s, r = s[(slice(None), *window)], r[(slice(None), *window)]
     if single:
         s, r = s[0], r[0]
@@ -1074,14 +1054,11 @@ def retrieve_tracking(
     phase, attenuation = full_frame(out.phase), full_frame(out.attenuation)
     mask = None
     if zero_background:
-        mask = (
-            np.asarray(to_numpy(background_mask), bool)
-            if background_mask is not None
-            else bg.detect_background(phase, attenuation if method != "gf" else None)
-        )
-        mask = mask & ~unseen  # the strips' values are extrapolated
+        # GF retrieves no attenuation: the background is found on the phase alone
+        with_attenuation = method != "gf"
+        mask = _tracking_background(phase, attenuation if with_attenuation else None, background_mask, unseen)
         phase = bg.zero_background(phase, mask)
-        if method != "gf":
+        if with_attenuation:
             attenuation = bg.zero_background(attenuation, mask)
     res = to_numpy(out.residual) * 100.0
     mean_drift = np.mean(drifts, axis=0)
@@ -1135,3 +1112,53 @@ def _initial_psi(initial, sample, reference, model, energy_eV, pixel_size_m, dif
     ny, nx = model.shape
     widths = ((frame[0].start, ny - frame[0].stop), (frame[1].start, nx - frame[1].stop))
     return xp.asarray(np.pad(psi, widths, mode="edge")).astype(model.cdtype)
+
+
+def _checked_tracking_frames(sample, reference, xp):
+    """Both stacks as float64, refused in one line where their shapes differ or a value is
+    non-finite or negative."""
+    s = xp.asarray(sample, dtype=xp.float64)
+    r = xp.asarray(reference, dtype=xp.float64)
+    if s.shape != r.shape or s.ndim not in (2, 3):
+        raise ValueError(f"sample {s.shape} and reference {r.shape} must be equal (y, x) or (K, y, x) stacks")
+    for name, a in (("sample", s), ("reference", r)):
+        if not bool(xp.all(xp.isfinite(a))):
+            raise ValueError(f"{name} has non-finite values (NaN or inf)")
+        if bool(xp.any(a < 0)):
+            raise ValueError(f"{name} has negative values: pass flat/dark-corrected intensities")
+    return s, r
+
+
+def _drift_corrected_references(s, r, diffuser_drift, xp) -> tuple[list, np.ndarray]:
+    """Each position's measured drift, its reference (in the (K, y, x) stack ``r``) shifted in
+    place to where the diffuser was for the sample frame, and the union of the strips no
+    reference saw (:func:`measured_drift`)."""
+    drifts, unseen = [], np.zeros(s.shape[1:], bool)
+    for k in range(s.shape[0]):
+        d, strips = measured_drift(s[k], r[k], diffuser_drift)
+        drifts.append(d)
+        if strips is not None:
+            r[k] = xp.maximum(calibration.shift_transmission(r[k].astype(xp.complex128), d).real, 0.0)
+            unseen |= strips
+        elif diffuser_drift == "auto" and k == 0:
+            # a still first position vouches for the rest: an estimate costs about what LCS
+            # spends on a position (0.37 s against 0.22 s for LCS K = 12 at 256^2 with all 12)
+            break
+    return drifts, unseen
+
+
+def _seen_window(unseen: np.ndarray) -> tuple[slice, slice]:
+    """The rectangle left when the unseen strips, which lie along the edges, are cropped off."""
+    rows, cols = np.flatnonzero(~unseen.all(axis=1)), np.flatnonzero(~unseen.all(axis=0))
+    return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+
+
+def _tracking_background(phase, attenuation, background_mask, unseen) -> np.ndarray:
+    """The given background mask, or the one detected, without the unseen strips (their
+    values are extrapolated)."""
+    mask = (
+        np.asarray(to_numpy(background_mask), bool)
+        if background_mask is not None
+        else bg.detect_background(phase, attenuation)
+    )
+    return mask & ~unseen

@@ -949,40 +949,68 @@ def fsc_scan(recon_path, *, split: str = "auto", criterion: str = "1/4", pairs: 
         split = "positions" if npos >= 2 else "even-odd"
     if split == "positions" and npos < 2:
         raise ValueError("FSC split 'positions' needs K >= 2 diffuser positions; use --split even-odd")
+    if split not in ("positions", "even-odd"):
+        raise ValueError(f"unknown FSC split {split!r}: use positions or even-odd")
+    pix = float(g.attrs["pixel_size_m"])
+    rows, px = fsc_region(g["delta"].shape[1], g["delta"].shape[2])
+    t0 = time.perf_counter()
+    if split == "positions":
+        f, n, curves, labels = _position_pair_curves(path, g, rows, px, pairs, seed)
+    else:
+        f, n, curves, labels = _even_odd_curves(path, g, rows, px)
+    summary = {"split": split, "labels": labels, **_write_fsc(g, f, n, curves, labels, split, criterion)}
+    if "simulation_phantom" in g.attrs:
+        summary.update(_fsc_truth(g, f, pix, rows, px))
+    g.attrs["fsc_wall_s"] = time.perf_counter() - t0
+    scan_io.consolidate(path)
+    return summary
+
+
+def _position_pair_curves(path, g, rows: slice, px: slice, pairs: int, seed: int):
+    """(frequencies, shell counts, {delta, beta: FSC curves}, labels) between the tomograms of
+    ``pairs`` random pairs of diffuser positions (all pairs where there are no more)."""
+    npos = g["delta"].shape[0]
+    pix = float(g.attrs["pixel_size_m"])
+    all_pairs = [(i, j) for i in range(npos) for j in range(i + 1, npos)]
+    rng = np.random.default_rng(seed)
+    chosen = (
+        all_pairs
+        if len(all_pairs) <= pairs
+        else [all_pairs[k] for k in rng.choice(len(all_pairs), pairs, replace=False)]
+    )
+    curves: dict[str, list] = {"delta": [], "beta": []}
+    for i, j in chosen:
+        for name in ("delta", "beta"):
+            vi, vj = (integrity.read_checked(path, g[name], name, (k, rows, px, px)) for k in (i, j))
+            f, c, n = _sub_volume_fsc(vi, vj, pix, g["delta"].shape[1:])
+            curves[name].append(c)
+    return f, n, curves, [f"positions {i}-{j}" for i, j in chosen]
+
+
+def _even_odd_curves(path, g, rows: slice, px: slice):
+    """(frequencies, shell counts, {delta, beta: FSC curves}, labels) between the tomograms of
+    each position's even and odd angles (K = 1)."""
     pix = float(g.attrs["pixel_size_m"])
     wl = wavelength_m(float(g.attrs["energy_eV"]))
     center = float(g.attrs["rotation_center_m"])
-    rows, px = fsc_region(g["delta"].shape[1], g["delta"].shape[2])
-    t0 = time.perf_counter()
     curves: dict[str, list] = {"delta": [], "beta": []}
     labels = []
-    if split == "positions":
-        all_pairs = [(i, j) for i in range(npos) for j in range(i + 1, npos)]
-        rng = np.random.default_rng(seed)
-        chosen = (
-            all_pairs
-            if len(all_pairs) <= pairs
-            else [all_pairs[k] for k in rng.choice(len(all_pairs), pairs, replace=False)]
-        )
-        for i, j in chosen:
-            for name in ("delta", "beta"):
-                vi, vj = (integrity.read_checked(path, g[name], name, (k, rows, px, px)) for k in (i, j))
-                f, c, n = _sub_volume_fsc(vi, vj, pix, g["delta"].shape[1:])
-                curves[name].append(c)
-            labels.append(f"positions {i}-{j}")
-    elif split == "even-odd":
-        for p in range(npos):
-            for name, src, sign in (("delta", "phase", -1.0), ("beta", "attenuation", 1.0)):
-                a, b = _even_odd_volumes(path, g, src, p, center, wl, sign, rows, px)
-                f, c, n = _sub_volume_fsc(a, b, pix, g["delta"].shape[1:])
-                curves[name].append(c)
-            labels.append(f"position {p} even-odd angles")
-    else:
-        raise ValueError(f"unknown FSC split {split!r}: use positions or even-odd")
+    for p in range(g["delta"].shape[0]):
+        for name, src, sign in (("delta", "phase", -1.0), ("beta", "attenuation", 1.0)):
+            a, b = _even_odd_volumes(path, g, src, p, center, wl, sign, rows, px)
+            f, c, n = _sub_volume_fsc(a, b, pix, g["delta"].shape[1:])
+            curves[name].append(c)
+        labels.append(f"position {p} even-odd angles")
+    return f, n, curves, labels
+
+
+def _write_fsc(g, f, n, curves: dict, labels: list, split: str, criterion: str) -> dict:
+    """fsc_delta and fsc_beta (split, frequency) with their resolutions by three criteria in
+    the attributes; returns {delta, beta: the resolution by ``criterion`` (m)}."""
     nf = len(f)
     scan_io.create_variable(g, "split", (len(labels),), (len(labels),), ("split",), "int64", 0, np.arange(len(labels)))
     scan_io.create_variable(g, "frequency", (nf,), (nf,), ("frequency",), "float64", 0.0, f)
-    summary = {"split": split, "labels": labels}
+    summary = {}
     for name in ("delta", "beta"):
         arr = np.array(curves[name])
         mean = arr.mean(axis=0)
@@ -1002,10 +1030,6 @@ def fsc_scan(recon_path, *, split: str = "auto", criterion: str = "1/4", pairs: 
             }
         )
         summary[name] = res[criterion]
-    if "simulation_phantom" in g.attrs:
-        summary.update(_fsc_truth(g, f, pix, rows, px))
-    g.attrs["fsc_wall_s"] = time.perf_counter() - t0
-    scan_io.consolidate(path)
     return summary
 
 

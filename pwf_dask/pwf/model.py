@@ -159,14 +159,7 @@ def build_model(
     shape = tuple(t.shape)
     ny, nx = frame_shape
     frame = (slice(pad, pad + ny), slice(pad, pad + nx))
-    mask = None
-    if shape != tuple(frame_shape) or bad_pixels is not None:
-        mask = xp.zeros(shape, dtype=rdt)
-        mask[frame] = 1
-        if bad_pixels is not None:
-            if tuple(bad_pixels.shape) != tuple(frame_shape):
-                raise ValueError(f"bad_pixels has shape {tuple(bad_pixels.shape)}, the frame {tuple(frame_shape)}")
-            mask[frame] *= 1 - xp.asarray(bad_pixels, dtype=rdt)
+    mask = _data_mask(shape, frame_shape, frame, bad_pixels, xp, rdt)
     t = t.astype(cdt, copy=False)
     field_upsample = int(field_upsample) if float(field_upsample).is_integer() else float(field_upsample)
     if not field_upsample >= 1:
@@ -187,21 +180,9 @@ def build_model(
         pix = optics.pixel_transfer_function(shape, pixel_size_m, pixel_size_m, xp, rdt)
         otf = pix if otf is None else otf * pix
     alpha = complex(alpha)
-    reg = None
-    if gamma > 0 and alpha != 0:
-        reg = optics.regularization_window(
-            shape, pixel_size_m, coherence_length_x_m, coherence_length_y_m, gamma, xp, rdt
-        )
-    precond = optics.preconditioner(shape, xp, rdt) if use_preconditioner else None
-    reg_phase = None
-    if reg is not None:
-        reg_phase = reg * optics.laplacian_symbol(shape, xp, rdt) if use_preconditioner else reg
-    if normalization == "paper":
-        norm = tmax
-    elif normalization == "released":
-        norm = tmax**2
-    else:
-        raise ValueError(f"normalization must be 'paper' or 'released', not {normalization!r}")
+    coherence_m = (coherence_length_x_m, coherence_length_y_m)
+    reg, reg_phase, precond = _filters(shape, pixel_size_m, coherence_m, gamma, alpha, use_preconditioner, xp, rdt)
+    norm = _normalization(tmax, normalization)
     return PWFModel(
         xp=xp,
         fft=fft,
@@ -232,6 +213,44 @@ def build_model(
         field_shape=field_shape,
         reg_terms=_regularizer_terms(reg, reg_phase, _half_weights(shape, xp, rdt), alpha),
     )
+
+
+def _data_mask(shape, frame_shape, frame, bad_pixels, xp, rdt):
+    """The data term's weights on the computational grid (1 on measured pixels, 0 on the
+    padding and on ``bad_pixels``), or None where every grid pixel is a measurement."""
+    if shape == tuple(frame_shape) and bad_pixels is None:
+        return None
+    mask = xp.zeros(shape, dtype=rdt)
+    mask[frame] = 1
+    if bad_pixels is not None:
+        if tuple(bad_pixels.shape) != tuple(frame_shape):
+            raise ValueError(f"bad_pixels has shape {tuple(bad_pixels.shape)}, the frame {tuple(frame_shape)}")
+        mask[frame] *= 1 - xp.asarray(bad_pixels, dtype=rdt)
+    return mask
+
+
+def _filters(shape, pixel_size_m, coherence_m, gamma, alpha, use_preconditioner, xp, rdt):
+    """(regularization window, its phase weight, preconditioner), None where unused: the window
+    (Methods, Regularization window) only with gamma > 0 and alpha != 0; its phase weight
+    carries the Laplacian symbol where the preconditioner (Methods, Preconditioning filter) is on."""
+    reg = None
+    if gamma > 0 and alpha != 0:
+        reg = optics.regularization_window(shape, pixel_size_m, *coherence_m, gamma, xp, rdt)
+    precond = optics.preconditioner(shape, xp, rdt) if use_preconditioner else None
+    reg_phase = None
+    if reg is not None:
+        reg_phase = reg * optics.laplacian_symbol(shape, xp, rdt) if use_preconditioner else reg
+    return reg, reg_phase, precond
+
+
+def _normalization(tmax: float, normalization: str) -> float:
+    """The gradient's normalisation: max |t|^2 as Algorithm S1 prints it ("paper"), or its
+    square as the authors' released code has it ("released")."""
+    if normalization == "paper":
+        return tmax
+    if normalization == "released":
+        return tmax**2
+    raise ValueError(f"normalization must be 'paper' or 'released', not {normalization!r}")
 
 
 def _regularizer_terms(reg_window, reg_phase_weight, weights, alpha: complex) -> tuple:

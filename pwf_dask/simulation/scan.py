@@ -83,25 +83,11 @@ def simulate_scan(
 
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    cfg = dict(PRESETS[preset])
+    cfg = PRESETS[preset]
     shape = tuple(shape or cfg["shape"])
-    n_ang = int(angles or cfg["angles"])
-    n_pos = int(positions or cfg["positions"])
+    n_ang, n_pos = int(angles or cfg["angles"]), int(positions or cfg["positions"])
     photons = float(photons or cfg["photons"])
-    if n_ang < 2 or n_pos < 1 or min(shape) < 32 or photons <= 0:
-        raise ValueError(
-            f"simulate: need >= 2 angles, >= 1 position, >= 32 x 32 px, photons > 0; got "
-            f"{n_ang}, {n_pos}, {shape}, {photons}"
-        )
-    drift = np.asarray(diffuser_drift_px, float)
-    if drift.shape != (2,) or not np.all(np.isfinite(drift)):
-        raise ValueError(f"simulate: diffuser_drift_px is a finite (dy, dx) pair, got {diffuser_drift_px!r}")
-    if cylinder_width_fraction is not None and not 0 < cylinder_width_fraction <= 10:
-        raise ValueError(f"simulate: cylinder_width_fraction is in (0, 10], got {cylinder_width_fraction}")
-    if not 0 <= dark_field_px <= 20:
-        raise ValueError(f"simulate: dark_field_px is a blur sigma in [0, 20] px, got {dark_field_px}")
-    if not 0 <= zingers < 0.1:
-        raise ValueError(f"simulate: zingers is a fraction of the pixels in [0, 0.1), got {zingers}")
+    _check_scene(shape, n_ang, n_pos, photons, diffuser_drift_px, cylinder_width_fraction, dark_field_px, zingers)
     setup = SpeckleSetup(
         shape=shape,
         photons=photons,
@@ -111,19 +97,61 @@ def simulate_scan(
     )
     if diffuser_upstream_m:
         setup = replace(setup, sample_diffuser_distance_m=0.0, diffuser_upstream_m=diffuser_upstream_m)
-    p = setup.pixel_size_m
-    setup.rotation_axis_offset_m = rotation_axis_offset_px * p
-    phantom = scan_phantom(shape, p, seed, cylinder_width_fraction, cfg.get("bead_radius_m"))
+    setup.rotation_axis_offset_m = rotation_axis_offset_px * setup.pixel_size_m
+    phantom = scan_phantom(shape, setup.pixel_size_m, seed, cylinder_width_fraction, cfg.get("bead_radius_m"))
     angles_deg = np.linspace(0.0, 180.0, n_ang)
     attrs = {
         "energy_eV": setup.energy_eV,
-        "pixel_size_m": p,
+        "pixel_size_m": setup.pixel_size_m,
         "sample_diffuser_distance_m": setup.sample_diffuser_distance_m,
         "diffuser_detector_distance_m": setup.diffuser_detector_distance_m,
         "flat_dark_corrected": not raw,
+        **_simulation_attrs(setup, preset, seed, zingers, dark_field_px, diffuser_drift_px, phantom),
+        "simulation_diffuser_grit": diffuser_grit if diffuser_radius_median_m is None else "",
+    }
+    g = scan_io.create_scan(
+        path,
+        n_positions=n_pos,
+        angles_deg=angles_deg,
+        shape=shape,
+        pixel_size_m=setup.pixel_size_m,
+        dtype="uint16" if raw else "float32",
+        attrs=attrs,
+        flat_dark=raw,
+    )
+    detector = SimulatedDetector(shape, photons, raw, seed, zingers)
+    if raw:
+        g["flat"][...], g["dark"][...] = detector.flat(), detector.dark()
+    drift = np.asarray(diffuser_drift_px, float)
+    _simulate_frames(g, setup, phantom, angles_deg, n_pos, seed, drift, dark_field_px, detector, progress)
+    scan_io.consolidate(path)
+    return str(path)
+
+
+def _check_scene(shape, n_ang, n_pos, photons, drift_px, cylinder_width_fraction, dark_field_px, zingers) -> None:
+    if n_ang < 2 or n_pos < 1 or min(shape) < 32 or photons <= 0:
+        raise ValueError(
+            f"simulate: need >= 2 angles, >= 1 position, >= 32 x 32 px, photons > 0; got "
+            f"{n_ang}, {n_pos}, {shape}, {photons}"
+        )
+    drift = np.asarray(drift_px, float)
+    if drift.shape != (2,) or not np.all(np.isfinite(drift)):
+        raise ValueError(f"simulate: diffuser_drift_px is a finite (dy, dx) pair, got {drift_px!r}")
+    if cylinder_width_fraction is not None and not 0 < cylinder_width_fraction <= 10:
+        raise ValueError(f"simulate: cylinder_width_fraction is in (0, 10], got {cylinder_width_fraction}")
+    if not 0 <= dark_field_px <= 20:
+        raise ValueError(f"simulate: dark_field_px is a blur sigma in [0, 20] px, got {dark_field_px}")
+    if not 0 <= zingers < 0.1:
+        raise ValueError(f"simulate: zingers is a fraction of the pixels in [0, 0.1), got {zingers}")
+
+
+def _simulation_attrs(setup: SpeckleSetup, preset, seed, zingers, dark_field_px, drift_px, phantom) -> dict:
+    """The truth a simulated scan records beside the contract's attributes (``simulation_*``;
+    the grit, where one was named, is recorded by the caller)."""
+    return {
         "simulated": True,
         "simulation_preset": preset,
-        "simulation_photons": photons,
+        "simulation_photons": setup.photons,
         "simulation_seed": seed,
         "simulation_coherence_length_x_m": setup.coherence_length_x_m,
         "simulation_coherence_length_y_m": setup.coherence_length_y_m,
@@ -131,51 +159,58 @@ def simulate_scan(
         "simulation_diffuser_upstream_m": setup.diffuser_upstream_m,
         "simulation_zingers": zingers,
         "simulation_dark_field_px": float(dark_field_px),
-        "simulation_diffuser_grit": setup.diffuser_grit if diffuser_radius_median_m is None else "",
         "simulation_diffuser_radius_median_m": setup.diffuser_radius_median_m,
         "simulation_diffuser_grain_shape": setup.diffuser_grain_shape,
-        "simulation_diffuser_drift_y_px": float(diffuser_drift_px[0]),
-        "simulation_diffuser_drift_x_px": float(diffuser_drift_px[1]),
+        "simulation_diffuser_drift_y_px": float(drift_px[0]),
+        "simulation_diffuser_drift_x_px": float(drift_px[1]),
         "simulation_phantom": phantom_to_json(phantom),
     }
-    dtype = "uint16" if raw else "float32"
-    g = scan_io.create_scan(
-        path,
-        n_positions=n_pos,
-        angles_deg=angles_deg,
-        shape=shape,
-        pixel_size_m=p,
-        dtype=dtype,
-        attrs=attrs,
-        flat_dark=raw,
-    )
-    ny, nx = shape
-    yy, xx = np.mgrid[0:ny, 0:nx]
-    beam = 1.0 - 0.15 * (((xx - nx / 2) / nx) ** 2 + ((yy - ny / 2) / ny) ** 2)  # flat-field profile
-    dark_level = 100.0
-    noise_rng = np.random.default_rng(seed + 7)
-    if raw:
-        g["flat"][...] = np.round(beam * photons + dark_level).astype(np.uint16)
-        g["dark"][...] = np.full(shape, dark_level, np.uint16)
 
-    # its own stream, so that a scan without zingers is the scan simulated before they existed
-    zinger_rng = np.random.default_rng(seed + 13)
-    n_zingers = int(round(zingers * ny * nx))
 
-    def add_zingers(frame, level):
-        hit = zinger_rng.choice(frame.size, n_zingers, replace=False)
-        frame.flat[hit] += zinger_rng.uniform(2.0, 20.0, n_zingers) * level
+class SimulatedDetector:
+    """Photon counting behind a beam profile: Poisson counts, zingers, and (``raw``) uint16 counts
+    on a dark level, as a detector delivers them; else flat/dark-corrected float32 intensities."""
+
+    #: the dark frame's counts
+    DARK_LEVEL = 100.0
+
+    def __init__(self, shape: tuple[int, int], photons: float, raw: bool, seed: int, zingers: float):
+        ny, nx = shape
+        yy, xx = np.mgrid[0:ny, 0:nx]
+        self.beam = 1.0 - 0.15 * (((xx - nx / 2) / nx) ** 2 + ((yy - ny / 2) / ny) ** 2)  # flat-field profile
+        self.shape, self.photons, self.raw = shape, photons, raw
+        self.noise_rng = np.random.default_rng(seed + 7)
+        # its own stream, so that a scan without zingers is the scan simulated before they existed
+        self.zinger_rng = np.random.default_rng(seed + 13)
+        self.n_zingers = int(round(zingers * ny * nx))
+
+    def flat(self) -> np.ndarray:
+        return np.round(self.beam * self.photons + self.DARK_LEVEL).astype(np.uint16)
+
+    def dark(self) -> np.ndarray:
+        return np.full(self.shape, self.DARK_LEVEL, np.uint16)
+
+    def _add_zingers(self, frame: np.ndarray, level: float) -> np.ndarray:
+        hit = self.zinger_rng.choice(frame.size, self.n_zingers, replace=False)
+        frame.flat[hit] += self.zinger_rng.uniform(2.0, 20.0, self.n_zingers) * level
         return frame
 
-    def detect(intensity):
-        if not raw:
-            img = (noise_rng.poisson(np.clip(intensity, 0, None) * photons) / photons).astype(np.float32)
-            return add_zingers(img, 1.0) if n_zingers else img
-        counts = noise_rng.poisson(np.clip(intensity, 0, None) * beam * photons) + dark_level
-        if n_zingers:
-            counts = add_zingers(counts.astype(np.float64), photons)
+    def detect(self, intensity: np.ndarray) -> np.ndarray:
+        """One frame of ``intensity`` (flat = 1) as the detector records it."""
+        photons = self.photons
+        if not self.raw:
+            img = (self.noise_rng.poisson(np.clip(intensity, 0, None) * photons) / photons).astype(np.float32)
+            return self._add_zingers(img, 1.0) if self.n_zingers else img
+        counts = self.noise_rng.poisson(np.clip(intensity, 0, None) * self.beam * photons) + self.DARK_LEVEL
+        if self.n_zingers:
+            counts = self._add_zingers(counts.astype(np.float64), photons)
         return np.clip(counts, 0, 65535).astype(np.uint16)
 
+
+def _simulate_frames(g, setup, phantom, angles_deg, n_pos, seed, drift, dark_field_px, detector, progress) -> None:
+    """Every position's reference and projections into the store ``g``: one diffuser per
+    position, moved by ``drift`` (px) linearly in time when it drifts."""
+    n_ang = len(angles_deg)
     written = [0]
     with contextlib.ExitStack() as stack:
         if progress:
@@ -183,11 +218,10 @@ def simulate_scan(
         for k in range(n_pos):
             sim = SpeckleSimulator(setup, seed=seed + 101 * k)
             t = sim.diffuser()
-            g["reference"][k] = detect(sim.intensity(None, t))
+            g["reference"][k] = detector.detect(sim.intensity(None, t))
             for a, ang in enumerate(angles_deg):
                 fld, psi = sim.sample_field(phantom, float(ang))
                 t_a = sim.diffuser(tuple(drift * a / (n_ang - 1))) if drift.any() else t
-                g["projections"][k, a] = detect(sim.intensity(fld, t_a, sim.dark_field_sigma_px(psi, dark_field_px)))
+                dark_field = sim.dark_field_sigma_px(psi, dark_field_px)
+                g["projections"][k, a] = detector.detect(sim.intensity(fld, t_a, dark_field))
                 written[0] += 1
-    scan_io.consolidate(path)
-    return str(path)

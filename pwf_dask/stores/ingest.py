@@ -272,19 +272,70 @@ def _scan_attrs(geometry, *, flat_dark_corrected: bool, coherence: tuple, specs:
     return attrs
 
 
-def _write_frames(g, sources: _Sources, stored, check, progress: bool) -> None:
-    """Every reference, then every projection, each checked as it is written."""
+@dataclass
+class _FrameStorage:
+    """How an ingest stores its frames: uint16 counts stay integers (rounded, clipped), all else
+    float32; each frame is checked after the flat/dark correction it will get."""
+
+    integer: bool
+    flat_dark_corrected: bool
+    flat: np.ndarray | None = None
+    dark: np.ndarray | None = None
+
+    @property
+    def dtype(self):
+        return np.uint16 if self.integer else np.float32
+
+    def stored(self, a) -> np.ndarray:
+        return np.clip(np.rint(a), 0, 65535).astype(np.uint16) if self.integer else np.asarray(a, np.float32)
+
+    def check(self, name: str, img) -> None:
+        a = correct(img, self.flat, self.dark, self.flat_dark_corrected)
+        if not np.all(np.isfinite(a)):
+            raise ScanError(f"{name}: non-finite values after flat/dark correction")
+        if np.any(a < 0):
+            raise ScanError(f"{name}: negative values after flat/dark correction (min {float(a.min()):.3g})")
+
+
+def _frame_storage(sources: _Sources, flat_dark_corrected: bool) -> _FrameStorage:
+    """The storage of these sources' frames, with the flat and dark (each averaged) it checks them by."""
+    integer = all(s.dtype == np.uint16 for s in sources.opened) and not flat_dark_corrected
+    if not (flat_dark_corrected or sources.flat or sources.dark):
+        warnings.warn(
+            "no flat and no dark: the frames are used as they are (a dark offset then reads as attenuation; "
+            "give --flat/--dark, or --flat-dark-corrected if they already are)",
+            UserWarning,
+            stacklevel=3,
+        )
+    storage = _FrameStorage(integer, flat_dark_corrected)
+    storage.flat = storage.stored(sources.flat.mean()) if sources.flat else None
+    storage.dark = storage.stored(sources.dark.mean()) if sources.dark else None
+    if (
+        storage.flat is not None
+        and storage.dark is not None
+        and np.any(storage.flat.astype(np.float32) <= storage.dark)
+    ):
+        raise ScanError("flat: some pixels are not above the dark (flat - dark <= 0)")
+    return storage
+
+
+def _write_frames(g, sources: _Sources, storage: _FrameStorage, progress: bool) -> None:
+    """The flat and dark, every reference, then every projection, each checked as it is written."""
+    shape = sources.shape
+    for name, img in (("flat", storage.flat), ("dark", storage.dark)):
+        if img is not None:
+            create_variable(g, name, shape, shape, ("y", "x"), storage.dtype, 0, img)
     for k, (src, idx, average) in enumerate(sources.references):
-        img = stored(src.mean(idx) if average else src.frame(k))
-        check(f"reference {k}", img)
+        img = storage.stored(src.mean(idx) if average else src.frame(k))
+        storage.check(f"reference {k}", img)
         g["reference"][k] = img
     done = [0]
     total = len(sources.positions) * sources.n_angles
     with Progress("ingest", total, lambda: done[0], unit="projections") if progress else nullcontext():
         for k, (src, idx) in enumerate(sources.positions):
             for i in range(sources.n_angles):
-                img = stored(src.frame(i, idx))
-                check(f"projection {i} of position {k} ({src.spec})", img)
+                img = storage.stored(src.frame(i, idx))
+                storage.check(f"projection {i} of position {k} ({src.spec})", img)
                 g["projections"][k, i] = img
                 done[0] += 1
 
@@ -337,23 +388,7 @@ def ingest_scan(
     sources = _open_sources(proj_specs, ref_specs, flat, dark)
     try:
         angles_deg = read_angles_deg(angles, sources.n_angles, angles_range_deg, angles_unit)
-        integer = all(s.dtype == np.uint16 for s in sources.opened) and not flat_dark_corrected
-        if not (flat_dark_corrected or flat or dark):
-            warnings.warn(
-                "no flat and no dark: the frames are used as they are (a dark offset then reads as attenuation; "
-                "give --flat/--dark, or --flat-dark-corrected if they already are)",
-                UserWarning,
-                stacklevel=2,
-            )
-        dtype = np.uint16 if integer else np.float32
-
-        def stored(a):
-            return np.clip(np.rint(a), 0, 65535).astype(np.uint16) if integer else np.asarray(a, np.float32)
-
-        flat_img = stored(sources.flat.mean()) if sources.flat else None
-        dark_img = stored(sources.dark.mean()) if sources.dark else None
-        if flat_img is not None and dark_img is not None and np.any(flat_img.astype(np.float32) <= dark_img):
-            raise ScanError("flat: some pixels are not above the dark (flat - dark <= 0)")
+        storage = _frame_storage(sources, flat_dark_corrected)
         specs = {
             "projections": proj_specs,
             "reference": ref_specs,
@@ -361,39 +396,23 @@ def ingest_scan(
             "dark": dark,
             "angles": angles or list(angles_range_deg),
         }
-        attrs = _scan_attrs(
-            geometry,
-            flat_dark_corrected=flat_dark_corrected,
-            coherence=(coherence_length_x_m, coherence_length_y_m),
-            specs=specs,
-        )
+        coherence = (coherence_length_x_m, coherence_length_y_m)
+        attrs = _scan_attrs(geometry, flat_dark_corrected=flat_dark_corrected, coherence=coherence, specs=specs)
     except BaseException:
         sources.close()
         raise
-
-    def check(name: str, img) -> None:
-        a = correct(img, flat_img, dark_img, flat_dark_corrected)
-        if not np.all(np.isfinite(a)):
-            raise ScanError(f"{name}: non-finite values after flat/dark correction")
-        if np.any(a < 0):
-            raise ScanError(f"{name}: negative values after flat/dark correction (min {float(a.min()):.3g})")
-
-    shape = sources.shape
     try:
         g = create_scan(
             out,
             n_positions=len(sources.positions),
             angles_deg=angles_deg,
-            shape=shape,
+            shape=sources.shape,
             pixel_size_m=geometry.pixel_size_m,
-            dtype=dtype,
+            dtype=storage.dtype,
             attrs=attrs,
             flat_dark=False,
         )
-        for name, img in (("flat", flat_img), ("dark", dark_img)):
-            if img is not None:
-                create_variable(g, name, shape, shape, ("y", "x"), dtype, 0, img)
-        _write_frames(g, sources, stored, check, progress)
+        _write_frames(g, sources, storage, progress)
         consolidate(out)
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)

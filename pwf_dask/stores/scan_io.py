@@ -131,40 +131,9 @@ def open_scan(path: str | Path, check_values: bool = True):
     except Exception as exc:  # zarr/xarray raise many types for a broken store
         raise ScanError(f"{path}: not a readable Zarr dataset ({type(exc).__name__}: {exc})") from None
     npos, nang, ny, nx = ds["projections"].shape
-    if "angle" not in ds.coords:
-        raise ScanError(f"{path}: missing coordinate 'angle' (degrees)")
-    angles = np.asarray(ds["angle"].values, dtype=np.float64)
-    if not np.all(np.isfinite(angles)):
-        raise ScanError(f"{path}: angle coordinate has non-finite values")
-    if npos < 1 or nang < 1 or min(ny, nx) < 16:
-        raise ScanError(
-            f"{path}: projections {ds['projections'].shape} too small (need >= 1 position and angle, 16 x 16 px)"
-        )
-    for name in ("projections", "reference", "flat", "dark"):
-        if name in ds and not (np.issubdtype(ds[name].dtype, np.integer) or np.issubdtype(ds[name].dtype, np.floating)):
-            raise ScanError(f"{path}: {name} has dtype {ds[name].dtype}; intensities are real numbers (int or float)")
-    if nang > 1 and np.ptp(angles) == 0:
-        raise ScanError(f"{path}: all {nang} angles are {angles[0]:g} deg; a scan rotates the sample")
+    angles = _checked_arrays(ds, path)
     attrs = dict(ds.attrs)
-    vals = {name: _attr_float(attrs, name, path) for name in REQUIRED_ATTRS}
-    upstream = _attr_float(attrs, "diffuser_upstream_m", path) if "diffuser_upstream_m" in attrs else 0.0
-    coh = []
-    for name in ("coherence_length_x_m", "coherence_length_y_m"):
-        if name in attrs:
-            c = _attr_float(attrs, name, path)
-            if c < 0:
-                raise ScanError(f"{path}: {name} must be >= 0, got {c}")
-            coh.append(c)
-        else:
-            coh.append(None)
-    try:
-        from pwf_dask.physics.geometry import Geometry
-        from pwf_dask.physics.optics import check_plausible_geometry
-
-        upstream = Geometry(**vals, diffuser_upstream_m=upstream).diffuser_upstream_m
-        check_plausible_geometry(coherence_length_x_m=coh[0], coherence_length_y_m=coh[1])
-    except ValueError as exc:
-        raise ScanError(f"{path}: {exc}") from None
+    vals, upstream, coh = _checked_optics(attrs, path)
     corrected = attrs.get("flat_dark_corrected", False)
     if not isinstance(corrected, (bool, np.bool_)):
         raise ScanError(
@@ -197,6 +166,52 @@ def open_scan(path: str | Path, check_values: bool = True):
     if check_values:
         check_scan_values(ds, info)
     return ds, info
+
+
+def _checked_arrays(ds, path: str) -> np.ndarray:
+    """The angles (degrees) of a scan whose arrays are usable: finite, distinct angles, a
+    frame of at least 16 x 16 and real intensities; else one ScanError line."""
+    npos, nang, ny, nx = ds["projections"].shape
+    if "angle" not in ds.coords:
+        raise ScanError(f"{path}: missing coordinate 'angle' (degrees)")
+    angles = np.asarray(ds["angle"].values, dtype=np.float64)
+    if not np.all(np.isfinite(angles)):
+        raise ScanError(f"{path}: angle coordinate has non-finite values")
+    if npos < 1 or nang < 1 or min(ny, nx) < 16:
+        raise ScanError(
+            f"{path}: projections {ds['projections'].shape} too small (need >= 1 position and angle, 16 x 16 px)"
+        )
+    for name in ("projections", "reference", "flat", "dark"):
+        if name in ds and not (np.issubdtype(ds[name].dtype, np.integer) or np.issubdtype(ds[name].dtype, np.floating)):
+            raise ScanError(f"{path}: {name} has dtype {ds[name].dtype}; intensities are real numbers (int or float)")
+    if nang > 1 and np.ptp(angles) == 0:
+        raise ScanError(f"{path}: all {nang} angles are {angles[0]:g} deg; a scan rotates the sample")
+    return angles
+
+
+def _checked_optics(attrs: dict, path: str) -> tuple[dict, float, list]:
+    """(the contract's geometry attributes, the upstream distance, the coherence lengths or
+    None), each a plausible number (:class:`~pwf_dask.physics.geometry.Geometry`)."""
+    from pwf_dask.physics.geometry import Geometry
+    from pwf_dask.physics.optics import check_plausible_geometry
+
+    vals = {name: _attr_float(attrs, name, path) for name in REQUIRED_ATTRS}
+    upstream = _attr_float(attrs, "diffuser_upstream_m", path) if "diffuser_upstream_m" in attrs else 0.0
+    coh = []
+    for name in ("coherence_length_x_m", "coherence_length_y_m"):
+        if name in attrs:
+            c = _attr_float(attrs, name, path)
+            if c < 0:
+                raise ScanError(f"{path}: {name} must be >= 0, got {c}")
+            coh.append(c)
+        else:
+            coh.append(None)
+    try:
+        upstream = Geometry(**vals, diffuser_upstream_m=upstream).diffuser_upstream_m
+        check_plausible_geometry(coherence_length_x_m=coh[0], coherence_length_y_m=coh[1])
+    except ValueError as exc:
+        raise ScanError(f"{path}: {exc}") from None
+    return vals, upstream, coh
 
 
 def check_scan_values(ds, info: ScanInfo) -> None:
