@@ -14,6 +14,9 @@
 #   calibration_sweep.* ~3 min: the template fit against the Gaussian over 80 diffusers and geometries
 #   geometry_sweep.*   ~2 min: PWF on other energies, pixels, coherence lengths and distances
 #   frame_size.*       ~12 min: phase gain at 256^2-1024^2 and on wide 25 keV strips of PMMA rods
+#   frame_size_grits.* ~2 min: the 160 x 2220 strip on P1200 and P2000 sandpaper
+#   frame_size_camera.* ~11 min: the paper preset on the camera's whole 2160 x 2560 frame and row crops
+#   edge_step.*        ~14 min: where the camera frame's 5 % of phase goes (start, alpha, prior)
 #   bench_fbp_cpu.*    ~5 min: gridding FBP against the backprojector, 2560 px x 801 angles
 #   bench_per_scan_cpu.* ~3 min: calibration, diffuser fit and model build against one retrieval
 #   field_grid.*       ~15 min: phase gain and iteration cost of the field grid 1x-2x on P3000 scenes
@@ -36,12 +39,15 @@ case "${1:-all}" in
   calibration-sweep) "$(dirname "$PWF")/python" -m benchmarks.calibration_sweep --out "$OUT" ;;
   geometry) "$(dirname "$PWF")/python" -m benchmarks.geometry_sweep --out "$OUT" ;;
   frame-size) "$(dirname "$PWF")/python" -m benchmarks.frame_size --truth-start --out "$OUT" ;;
+  frame-grits) "$(dirname "$PWF")/python" -m benchmarks.frame_size --scenes grits --out "$OUT" ;;
+  frame-camera) "$(dirname "$PWF")/python" -m benchmarks.frame_size --scenes camera --out "$OUT" ;;
+  edge-step) "$(dirname "$PWF")/python" -m benchmarks.edge_step --out "$OUT" ;;
   fbp) "$PWF" bench fbp --out "$OUT" ;;
   perscan) "$PWF" bench perscan --out "$OUT" ;;
   fullwidth) "$PWF" bench fullwidth --out "$OUT" ;;
   field-grid) "$(dirname "$PWF")/python" -m benchmarks.field_grid --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size fbp perscan field-grid paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|fbp|perscan|field-grid|paper-figures|fullwidth|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-camera edge-step fbp perscan field-grid paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-camera|edge-step|fbp|perscan|field-grid|paper-figures|fullwidth|all]" >&2; exit 2 ;;
 esac
