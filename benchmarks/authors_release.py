@@ -11,7 +11,7 @@ field-correlation rule (``retrieval.AUTHORS_RELEASE``). The same images go throu
 * ``release, 2000 it``: ``AUTHORS_RELEASE`` without its stop rule, 2000 iterations (what the
   first-pass stop leaves out).
 
-Scenes (sub-pixel SiC sandpaper, pixel integration, Poisson noise; coherence lengths
+Scenes (four layers of P3000 SiC sandpaper, pixel integration, Poisson noise; coherence lengths
 calibrated from the reference): the issue's 512^2 scene at 1e4 ph/px (seeds 1 and 3), and
 256^2 scenes with the diffuser upstream of the sample (L1 = 0) and at 1e3 ph/px. Reported:
 wall time, iterations, stop reason, relative phase and attenuation error inside the sample,

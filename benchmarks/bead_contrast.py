@@ -1,6 +1,6 @@
 """Bead contrast against alpha on the demo scene's projections (docs/methods.md, Regularization weight).
 
-The demo scan's geometry (48 x 128 px, the paper's optics, sub-pixel SiC sandpaper, 1e4 ph/px,
+The demo scan's geometry (48 x 128 px, the paper's optics, four layers of P3000 SiC sandpaper, 1e4 ph/px,
 the rotation axis 2.5 px off centre) and phantom (seed 0), at six angles; every alpha sees the
 same noisy images and the same fitted diffuser. For the largest glass bead it reports the local
 phase and attenuation contrast errors (``stability.bead_contrast_error``: + = overshoot).

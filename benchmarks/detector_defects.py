@@ -1,6 +1,6 @@
 """PWF with detector defects (zingers) against the same scene without them (docs/validation.md, Detector defects).
 
-A 256 x 256 projection (the paper's geometry, sub-pixel sandpaper, 1e4 photons/pixel, seed 1).
+A 256 x 256 projection (the paper's geometry, four layers of P3000 SiC sandpaper, 1e4 photons/pixel, seed 1).
 Single-pixel spikes of a given height (in units of the image mean) are added at random places
 to the corrected sample and reference; PWF runs with the defect test on (default,
 ``outlier_sigma=10``) and off (``0``: every pixel fitted). Reported: pixels found, relative phase
@@ -80,7 +80,7 @@ def main(argv=None) -> list[dict]:
     lines = [
         "# PWF with detector defects (`python -m benchmarks.detector_defects`)",
         "",
-        "256 x 256, paper geometry, sub-pixel sandpaper, 1e4 photons/pixel; relative phase error",
+        "256 x 256, paper geometry, four layers of P3000 SiC sandpaper, 1e4 photons/pixel; relative phase error",
         "inside the sample. `outlier_sigma` 10 = defects left out (default), 0 = every pixel fitted.",
         "",
         "| spikes | height (x mean) | in | outlier_sigma | found (sample + ref.) | error | iterations | converged |",

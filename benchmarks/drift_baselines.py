@@ -1,6 +1,6 @@
 """The speckle-tracking baselines under diffuser drift, uncorrected and corrected (docs/validation.md, Diffuser drift).
 
-A 256 x 256 projection (the paper's geometry, sub-pixel sandpaper, 1e4 photons/pixel, the
+A 256 x 256 projection (the paper's geometry, four layers of P3000 SiC sandpaper, 1e4 photons/pixel, the
 default cellulose rod with glass beads): the sample frames are taken through the diffuser
 moved by a drift since the references. UMPA with one image (seeds 1-6) and LCS with 12
 positions (seeds 1-3; every position drifted alike) run through ``retrieve_projection`` with
@@ -68,7 +68,8 @@ def main(argv=None) -> list[dict]:
     lines = [
         f"# Speckle-tracking baselines under diffuser drift ({device_name(np)})",
         "",
-        "`python -m benchmarks.drift_baselines`: 256 x 256, paper geometry, sub-pixel sandpaper, 1e4 ph/px;",
+        "`python -m benchmarks.drift_baselines`: 256 x 256, paper geometry, four layers of P3000 SiC sandpaper, "
+        "1e4 ph/px;",
         "the sample frames taken through the diffuser moved by the drift. Relative phase error inside the",
         "sample (background detected); mean over seeds, range in brackets. `still` = no drift.",
         "",

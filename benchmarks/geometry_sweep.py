@@ -1,6 +1,6 @@
 """PWF on beamline geometries other than the paper's (docs/validation.md, Where PWF fails: other geometries).
 
-One 256 x 256 projection (sub-pixel SiC sandpaper, the default cellulose rod with glass beads,
+One 256 x 256 projection (four layers of P3000 SiC sandpaper, the default cellulose rod with glass beads,
 1e4 photons/pixel, seed 1) in the paper's optics with one thing changed at a time: photon
 energy, detector pixel, coherence lengths, distances, a diffuser upstream of the sample. PWF
 runs through ``retrieve_projection`` with its defaults (coherence lengths calibrated from the
@@ -94,7 +94,8 @@ def main(argv=None) -> list[dict]:
     lines = [
         f"# PWF on other beamline geometries ({device_name(np)})",
         "",
-        "`python -m benchmarks.geometry_sweep`: 256 x 256, sub-pixel SiC sandpaper, cellulose rod with glass beads,",
+        "`python -m benchmarks.geometry_sweep`: 256 x 256, four layers of P3000 SiC sandpaper, "
+        "cellulose rod with glass beads,",
         "1e4 ph/px, seed 1; the paper's optics (true coherence lengths 3.47 / 4.31 um) but for the change named.",
         "PWF with `retrieve_projection` defaults (lengths calibrated from the reference) unless options are named.",
         "Phase error: relative RMSE inside the sample; s: the field grid's refinement used.",

@@ -27,6 +27,11 @@ cellulose rod with glass beads) is varied along one axis at a time:
   them from its reference by the template fit (the default of ``retrieve_projection``) or by
   the paper's Gaussian alone.
 
+PWF is given each point's true coherence lengths, so that the map measures the retrieval, except
+in the column ``PWF K=1 calibrated``, which calibrates them from the point's own reference at
+every point of every other axis, as a user's run does: where the two PWF columns part, the
+calibration is what fails.
+
 Every point reports the measured physical coordinates (largest phase in pi, 99th-percentile
 speckle displacement over the grain size) beside the axis value, and for every method the phase
 and attenuation errors: RMSE inside the sample relative to the RMS true value, after the
@@ -72,6 +77,8 @@ PWF_ONLY_AXES = ("coherence_error", "ablation", "calibration")
 # (label, method, K diffuser positions, options)
 METHOD_RUNS: list[tuple[str, str, int, dict]] = [
     ("PWF K=1", "pwf", 1, dict(max_iter=500)),
+    # as a user's run: the lengths calibrated from this point's own reference (the default fit)
+    ("PWF K=1 calibrated", "pwf", 1, dict(max_iter=500, coherence_method="template")),
     ("PWF K=1 paper alpha", "pwf", 1, dict(max_iter=500, alpha=PAPER_ALPHA)),
     ("LCS K=12", "lcs", 12, {}),
     ("UMPA K=12 w5", "umpa", 12, dict(tracking_options={"window": 5})),
@@ -287,6 +294,24 @@ def _point_setups(axis: str, value, base: SpeckleSetup):
     return setup, lateral, target, absorption, photons, pwf, dark
 
 
+def point_methods(axis: str, methods: list[tuple[str, str, int, dict]]) -> list[tuple[str, str, int, dict]]:
+    """The runs of one axis: on PWF's own axes (lengths given wrong, ablations, calibration
+    methods) the PWF runs given their lengths, not the calibrated column; elsewhere all."""
+    if axis in PWF_ONLY_AXES:
+        return [m for m in methods if m[1] == "pwf" and "coherence_method" not in m[3]]
+    return methods
+
+
+def pwf_options(opts: dict, pwf_over: dict, setup: SpeckleSetup) -> dict:
+    """PWF's keywords at one point: the true coherence lengths, unless the run or the point
+    calibrates them from the reference; then the point's own overrides."""
+    kw = dict(opts)
+    if "coherence_method" not in opts and "coherence_method" not in pwf_over:
+        kw.update(coherence_length_x_m=setup.coherence_length_x_m, coherence_length_y_m=setup.coherence_length_y_m)
+    kw.update(pwf_over)
+    return kw
+
+
 def stability_map(
     shape: tuple[int, int] = (256, 256),
     axes: dict[str, list] | None = None,
@@ -323,7 +348,7 @@ def stability_map(
                 phantom = replace(phantom0, spheres=(single_bead(phantom0, float(value) * base.pixel_size_m),))
             # the gradient axis keeps the base's largest phase; thickness sets it
             factor = 1.0 / lateral if target is None else target * np.pi / base_max_phase
-            runs = [m for m in methods if m[1] == "pwf"] if axis in PWF_ONLY_AXES else methods
+            runs = point_methods(axis, methods)
             scene = scene_for(setup, phantom, lateral, factor, absorption, dark)
             wl = optics.wavelength_m(setup.energy_eV)
             l2 = setup.diffuser_detector_distance_m
@@ -334,14 +359,7 @@ def stability_map(
             }
             for label, method, k, opts in runs:
                 s, r = scene.images(photons, k, seed=seed + 7)
-                kw = dict(opts)
-                if method == "pwf":
-                    if "coherence_method" not in pwf_over:  # the truth, unless the point calibrates
-                        kw.update(
-                            coherence_length_x_m=setup.coherence_length_x_m,
-                            coherence_length_y_m=setup.coherence_length_y_m,
-                        )
-                    kw.update(pwf_over)
+                kw = pwf_options(opts, pwf_over, setup) if method == "pwf" else dict(opts)
                 t0 = time.perf_counter()
                 res = retrieve_projection(
                     s[0] if k == 1 else s,
@@ -436,10 +454,11 @@ def write_stability_map(rows: list[dict], out_dir: str | Path, device: str) -> N
         "",
         "`pwf-dask bench stability`: one projection of the paper's optics (10 keV, 0.65 um pixels, L1 = 3 mm,",
         "L2 = 20 mm, four layers of P3000 SiC sandpaper, cellulose rod with glass beads, 1e4 ph/px) varied along",
-        "one axis at a time. Axes re-measured alone (`--axes`) keep the others' rows: in the committed map only",
-        "`grain_um` and `calibration` are on P3000, the rest on the finer sandpaper of sessions 1-21",
-        "(`simulation.FINE_DIFFUSER`; docs/validation.md, Where PWF fails). Entry: phase RMSE inside the sample",
-        "/ RMS true phase (background zeroed on the true sample-free pixels for every method).",
+        "one axis at a time (axes re-measured alone with `--axes` keep the others' rows). PWF is given the",
+        "point's true coherence lengths, except in the column `PWF K=1 calibrated` and on the `calibration` axis,",
+        "where it calibrates them from the point's own reference as a user's run does (the template fit, the",
+        "default). Entry: phase RMSE inside the sample / RMS true phase (background zeroed on the true",
+        "sample-free pixels for every method).",
         f"A method holds while this is below {PHASE_ERROR_THRESHOLD}; **bold** = fails.",
         "In brackets: the largest bead's local phase contrast error (+ = overshoot), which the sample-wide RMSE",
         "hides; the tomogram's bead delta inherits it.",

@@ -155,8 +155,9 @@ def test_dark_field_fails_pwf_and_not_umpa_k12():
     sample comes back as extra phase (gain well above 1), while UMPA's window correlation
     with 12 images finds the shifts whatever the contrast (docs/validation.md, Stability map). Measured
     with the paper's alpha; the default's (Im 0.05) damps the extra phase to an error of 0.22,
-    under the map's threshold."""
-    methods = [stability.METHOD_RUNS[1], stability.METHOD_RUNS[3]]
+    under the map's threshold (0.157 on the 256^2 map)."""
+    methods = [m for m in stability.METHOD_RUNS if m[0] in ("PWF K=1 paper alpha", "UMPA K=12 w5")]
+    assert len(methods) == 2
     rows = stability.stability_map(
         shape=(128, 128), axes={"dark_field_px": [0.0, 2.0]}, methods=methods, progress=False
     )
@@ -168,3 +169,21 @@ def test_dark_field_fails_pwf_and_not_umpa_k12():
     assert got[2.0, pwf]["phase_gain"] > 1.2
     assert got[0.0, "UMPA K=12 w5"]["phase_error"] < threshold
     assert got[2.0, "UMPA K=12 w5"]["phase_error"] < threshold
+
+
+def test_the_calibrated_column_calibrates_at_every_point_but_on_pwf_axes():
+    """``PWF K=1 calibrated`` gets no true lengths, the other PWF runs get the point's own
+    (an l2_mm point scales them); on the axes that set PWF's lengths it does not run."""
+    label, method, k, opts = next(m for m in stability.METHOD_RUNS if m[0] == "PWF K=1 calibrated")
+    assert (method, k, opts["coherence_method"]) == ("pwf", 1, "template")
+    setup, *_, pwf_over, _ = stability._point_setups("l2_mm", 40.0, SpeckleSetup(shape=(64, 64)))
+    calibrated = stability.pwf_options(opts, pwf_over, setup)
+    assert "coherence_length_x_m" not in calibrated and calibrated["coherence_method"] == "template"
+    given = stability.pwf_options(stability.METHOD_RUNS[0][3], pwf_over, setup)
+    assert given["coherence_length_x_m"] == pytest.approx(2 * 3.47e-6)
+    *_, wrong, _ = stability._point_setups("coherence_error", 0.3, setup)
+    assert stability.pwf_options({}, wrong, setup)["coherence_length_y_m"] == pytest.approx(1.3 * 2 * 4.31e-6)
+    for axis in stability.PWF_ONLY_AXES:
+        runs = [m[0] for m in stability.point_methods(axis, stability.METHOD_RUNS)]
+        assert label not in runs and "PWF K=1" in runs and "LCS K=12" not in runs
+    assert label in [m[0] for m in stability.point_methods("dose", stability.METHOD_RUNS)]
