@@ -137,9 +137,11 @@ def strip(truth_start: bool, seed: int = 1, grit: str | None = None, crops=STRIP
     for ny, nx in crops:
         y0 = (setup.shape[0] - ny) // 2
         crop = np.s_[y0 : y0 + ny, :nx]
-        runs = [("zero", {}), ("zero", {"single_material": True, "sample_material": "PMMA"})]
+        # measured with the single-material diffuser fit, which "auto" leaves at 25 keV
+        fit = {"diffuser_model": "single-material"}
+        runs = [("zero", fit), ("zero", {**fit, "single_material": True, "sample_material": "PMMA"})]
         if truth_start and (ny, nx) == (160, 2220):
-            runs.append(("truth", {}))
+            runs.append(("truth", fit))
         for start, options in runs:
             initial = "zero" if start == "zero" else -attenuation[crop] + 1j * phase[crop]
             r, s = _retrieve(sample[crop], reference[crop], setup, initial, **options)

@@ -331,7 +331,7 @@ def _field_upsample(text: str):
 
 def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     """Every retrieval option of ``retrieve`` and ``run`` (read back by :func:`retrieval_kwargs`)."""
-    from pwf_dask.calibration.diffuser import DIFFUSER_MODELS
+    from pwf_dask.calibration.diffuser import DIFFUSER_MODEL_CHOICES
     from pwf_dask.options import DEFAULTS
     from pwf_dask.pipeline.workflow import DEFAULT_ANGLE_CHAIN
 
@@ -379,8 +379,10 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--diffuser-model",
         default=DEFAULTS.diffuser_model,
-        choices=DIFFUSER_MODELS,
-        help="diffuser estimate from the reference: one material fitted (default) or the paper's zero phase",
+        choices=DIFFUSER_MODEL_CHOICES,
+        help="diffuser estimate from the reference: one material fitted, the paper's zero phase, or auto "
+        "(default): one material where the diffuser's beta/delta is 0.009 or more (silicon carbide up to "
+        "~11 keV), else zero phase",
     )
     p.add_argument(
         "--diffuser-upstream-m",

@@ -61,7 +61,7 @@ class RetrievalOptions:
     pad: int | str = "auto"
     field_upsample: int | float | str = "auto"
     # the diffuser estimate t_r
-    diffuser_model: str = "single-material"
+    diffuser_model: str = "auto"
     diffuser_material: str = DEFAULT_MATERIAL
     diffuser_beta_over_delta: float | None = None
     diffuser_refine_iter: int = REFINE_ITER

@@ -294,7 +294,9 @@ def estimate_diffuser(
         pad=pad,
         diffuser_upstream_m=diffuser_upstream_m,
     )
-    kappa = _diffuser_kappa(diffuser_model, diffuser_material, diffuser_beta_over_delta, energy_eV)
+    diffuser_model, kappa = chosen_diffuser_model(
+        diffuser_model, diffuser_material, diffuser_beta_over_delta, energy_eV
+    )
     scale = float(xp.mean(ref))
     if not scale > 0:
         raise ValueError("reference has zero mean intensity")
@@ -343,9 +345,20 @@ def _single_material_prior(on: bool, material: str, delta_over_beta: float | Non
     return {"single_material": True, "sample_delta_over_beta": ratio, "paganin_length_m": length}
 
 
-def _diffuser_kappa(model: str, material: str, beta_over_delta: float | None, energy_eV: float) -> float | None:
-    if model != "single-material":
-        return None
+def chosen_diffuser_model(
+    model: str, material: str, beta_over_delta: float | None, energy_eV: float
+) -> tuple[str, float | None]:
+    """The diffuser model that ``model`` asks for (``"auto"`` resolved by the diffuser's kappa,
+    :func:`pwf_dask.calibration.choose_diffuser_model`) and its kappa, None for zero phase."""
+    if model == "zero-phase":
+        return model, None
+    kappa = _diffuser_kappa(material, beta_over_delta, energy_eV)
+    model = calibration.choose_diffuser_model(model, kappa)
+    return model, (kappa if model == "single-material" else None)
+
+
+def _diffuser_kappa(material: str, beta_over_delta: float | None, energy_eV: float) -> float:
+    """kappa = beta/delta of the diffuser: the one given, else its material's at the energy."""
     if beta_over_delta is not None:
         if not beta_over_delta >= 0:
             raise ValueError(f"diffuser_beta_over_delta must be >= 0, got {beta_over_delta}")
@@ -525,10 +538,14 @@ def retrieve_projection(
     Notes
     -----
     The diffuser t_r is estimated from the reference (:mod:`pwf_dask.calibration.diffuser`):
-    ``diffuser_model="single-material"`` (default) fits exp(-(kappa + i) theta) with kappa =
+    ``diffuser_model="single-material"`` fits exp(-(kappa + i) theta) with kappa =
     ``diffuser_beta_over_delta`` or, when None, beta/delta of ``diffuser_material`` at the
     energy (xraydb) in ``diffuser_refine_iter`` L-BFGS iterations; ``"zero-phase"`` is the
-    paper's estimate. With ``diffuser_upstream_m`` t_r is the fitted diffuser's field at the
+    paper's estimate; ``"auto"`` (default) takes the single material where its kappa reaches
+    :data:`pwf_dask.calibration.AUTO_MIN_KAPPA` (0.009: silicon carbide up to ~11 keV), else
+    zero phase, and records the choice (``parameters["diffuser_model"]``, beside
+    ``"diffuser_model_requested"``).
+    With ``diffuser_upstream_m`` t_r is the fitted diffuser's field at the
     sample plane (:func:`pwf_dask.calibration.diffuser_transmission`).
 
     ``field_upsample="auto"`` starts on the grid of :func:`auto_field_upsample` (the detector
@@ -566,6 +583,7 @@ def retrieve_projection(
     geometry = Geometry(
         energy_eV, pixel_size_m, sample_diffuser_distance_m, diffuser_detector_distance_m, opts.diffuser_upstream_m
     )
+    requested = opts.diffuser_model
     opts, prior, kappa = _checked_pwf_options(opts, y.shape, geometry)
     # spikes: the reference is repaired (the diffuser estimate needs every pixel), the
     # sample's are left out of the data term (and repaired for the statistics that read it)
@@ -621,6 +639,7 @@ def retrieve_projection(
             prior,
             kappa,
             diffuser_given=diffuser is not None,
+            diffuser_model_requested=requested,
             drift=drift,
             moved=moved,
             outliers=n_outliers,
@@ -812,11 +831,15 @@ def _checked_pwf_options(
     check_diffuser_drift(opts.diffuser_drift)
     field_upsample = check_field_upsample(opts.field_upsample)
     prior = _single_material_prior(opts.single_material, opts.sample_material, opts.sample_delta_over_beta, geometry)
-    kappa = _diffuser_kappa(
+    model, kappa = chosen_diffuser_model(
         opts.diffuser_model, opts.diffuser_material, opts.diffuser_beta_over_delta, geometry.energy_eV
     )
     checked = replace(
-        opts, alpha=alpha, field_upsample=field_upsample, diffuser_upstream_m=geometry.diffuser_upstream_m
+        opts,
+        alpha=alpha,
+        field_upsample=field_upsample,
+        diffuser_upstream_m=geometry.diffuser_upstream_m,
+        diffuser_model=model,
     )
     return checked, prior, kappa
 
@@ -942,6 +965,7 @@ def _parameters(
     kappa: float | None,
     *,
     diffuser_given: bool,
+    diffuser_model_requested: str,
     drift,
     moved: bool,
     outliers: int,
@@ -977,6 +1001,7 @@ def _parameters(
         "pad": opts.pad,
         **coherence.parameters(),
         "diffuser_model": opts.diffuser_model,
+        "diffuser_model_requested": diffuser_model_requested,
         "diffuser_given": diffuser_given,
         "diffuser_beta_over_delta": kappa,
         "diffuser_refine_iter": opts.diffuser_refine_iter,

@@ -223,3 +223,22 @@ def test_shift_transmission_is_a_roll_for_whole_pixels(rng):
     np.testing.assert_allclose(calibration.shift_transmission(t, (2.0, -3.0)), np.roll(t, (2, -3), (0, 1)), atol=1e-5)
     half = calibration.shift_transmission(calibration.shift_transmission(t, (0.5, 0.25)), (-0.5, -0.25))
     np.testing.assert_allclose(half, t, atol=1e-5)
+
+
+def test_auto_diffuser_model_follows_the_diffusers_absorption():
+    """``"auto"``: silicon carbide at 10 keV (kappa 0.011) keeps the single-material fit, at
+    12.5 keV and above (0.007) the zero-phase estimate; a named model passes as given, an
+    unknown one is refused in one line naming the choices."""
+    from pwf_dask.physics.materials import delta_beta
+
+    def kappa(energy_eV):
+        d, b = delta_beta("silicon carbide", energy_eV)
+        return b / d
+
+    assert calibration.choose_diffuser_model("auto", kappa(10e3)) == "single-material"
+    for energy_eV in (12.5e3, 20e3, 25e3):
+        assert calibration.choose_diffuser_model("auto", kappa(energy_eV)) == "zero-phase"
+    assert 0.007 < calibration.AUTO_MIN_KAPPA < kappa(10e3)
+    assert calibration.choose_diffuser_model("single-material", kappa(20e3)) == "single-material"
+    with pytest.raises(ValueError, match="unknown diffuser_model 'random'.*auto"):
+        calibration.choose_diffuser_model("random", kappa(20e3))

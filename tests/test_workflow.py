@@ -170,6 +170,7 @@ def test_the_diffuser_is_fitted_once_per_position_and_kept(tiny_scan, tmp_path, 
     workflow.retrieve_scan(tiny_scan, recon, **FAST)
     assert len(calls) == 2
     g = zarr.open_group(str(recon), mode="r+", use_consolidated=False)
+    assert (g.attrs["diffuser_model"], g.attrs["diffuser_model_chosen"]) == ("auto", "single-material")  # 10 keV
     for p in (0, 1):  # each on its own grid (the padding follows its coherence), NaN beyond it
         t = workflow._stored_diffuser(str(recon), p)
         assert np.isfinite(t).all() and t.shape[0] > 32 and t.shape[1] > 64

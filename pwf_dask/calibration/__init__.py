@@ -19,8 +19,11 @@ from pwf_dask.calibration.coherence import (
     white_noise_floor,
 )
 from pwf_dask.calibration.diffuser import (
+    AUTO_MIN_KAPPA,
+    DIFFUSER_MODEL_CHOICES,
     DIFFUSER_MODELS,
     DiffuserEstimate,
+    choose_diffuser_model,
     ctf_phase_delay,
     diffuser_transmission,
     refine_phase_screen,
@@ -29,10 +32,13 @@ from pwf_dask.calibration.diffuser import (
 from pwf_dask.calibration.drift import shift_transmission, speckle_drift_px, unseen_by_reference
 
 __all__ = [
+    "AUTO_MIN_KAPPA",
     "COHERENCE_METHODS",
+    "DIFFUSER_MODEL_CHOICES",
     "DIFFUSER_MODELS",
     "CoherenceFit",
     "DiffuserEstimate",
+    "choose_diffuser_model",
     "coherence_lengths",
     "ctf_phase_delay",
     "diffuser_transmission",

@@ -517,6 +517,15 @@ def _model_record(method: str, options: dict, energy_eV: float) -> dict:
             if isinstance(v, (int, float, str, bool)) and (method == "mist" or not k.startswith("sample_"))
         },
     }
+    if method == "pwf":  # what "auto" chose at this energy (the same for every position)
+        from pwf_dask.retrieval import chosen_diffuser_model
+
+        record["diffuser_model_chosen"] = chosen_diffuser_model(
+            record["diffuser_model"],
+            options.get("diffuser_material", DEFAULTS.diffuser_material),
+            options.get("diffuser_beta_over_delta"),
+            energy_eV,
+        )[0]
     if method == "mist" or options.get("single_material"):
         from pwf_dask.retrieval import sample_delta_over_beta_of
 
