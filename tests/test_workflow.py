@@ -704,3 +704,15 @@ def test_discrepancy_alpha_is_chosen_once_recorded_and_kept_on_resume(tiny_scan,
     assert attrs["alpha"] in [t[0] for t in trials]
     workflow.retrieve_scan(tiny_scan, recon, alpha="discrepancy", **FAST)  # resumed: same parameters
     assert "discrepancy principle" not in capsys.readouterr().err
+
+
+def test_the_store_records_the_diffuser_model_auto_chose():
+    """``diffuser_model="auto"``: the single-material fit at 10 keV, zero phase at 20 keV (silicon
+    carbide's beta/delta 0.003), a named model as named, an unknown one refused in one line."""
+    assert workflow._model_record("pwf", {}, 10e3)["diffuser_model_chosen"] == "single-material"
+    assert workflow._model_record("pwf", {}, 20e3)["diffuser_model_chosen"] == "zero-phase"
+    named = workflow._model_record("pwf", {"diffuser_model": "single-material"}, 20e3)
+    assert named["diffuser_model"] == named["diffuser_model_chosen"] == "single-material"
+    assert "diffuser_model_chosen" not in workflow._model_record("lcs", {}, 20e3)
+    with pytest.raises(ValueError, match="unknown diffuser_model 'random'"):
+        workflow._model_record("pwf", {"diffuser_model": "random"}, 10e3)
