@@ -381,8 +381,8 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
         default=DEFAULTS.diffuser_model,
         choices=DIFFUSER_MODEL_CHOICES,
         help="diffuser estimate from the reference: one material fitted, the paper's zero phase, or auto "
-        "(default): one material where the diffuser's beta/delta is 0.009 or more (silicon carbide up to "
-        "~11 keV), else zero phase",
+        "(default): one material where the diffuser absorbs at least 5 /mm (silicon carbide up to ~11 keV), "
+        "else zero phase",
     )
     p.add_argument(
         "--diffuser-upstream-m",

@@ -348,23 +348,19 @@ def _single_material_prior(on: bool, material: str, delta_over_beta: float | Non
 def chosen_diffuser_model(
     model: str, material: str, beta_over_delta: float | None, energy_eV: float
 ) -> tuple[str, float | None]:
-    """The diffuser model that ``model`` asks for (``"auto"`` resolved by the diffuser's kappa,
-    :func:`pwf_dask.calibration.choose_diffuser_model`) and its kappa, None for zero phase."""
+    """The diffuser model that ``model`` asks for (``"auto"`` resolved by the diffuser's linear
+    attenuation coefficient 2 k delta kappa, :func:`pwf_dask.calibration.choose_diffuser_model`)
+    and its kappa = beta/delta (the one given, else its material's at the energy), None for
+    zero phase."""
     if model == "zero-phase":
         return model, None
-    kappa = _diffuser_kappa(material, beta_over_delta, energy_eV)
-    model = calibration.choose_diffuser_model(model, kappa)
+    if beta_over_delta is not None and not beta_over_delta >= 0:
+        raise ValueError(f"diffuser_beta_over_delta must be >= 0, got {beta_over_delta}")
+    delta, beta = delta_beta(material, energy_eV)
+    kappa = beta / delta if beta_over_delta is None else float(beta_over_delta)
+    mu = 2 * (2 * math.pi / optics.wavelength_m(energy_eV)) * delta * kappa
+    model = calibration.choose_diffuser_model(model, mu)
     return model, (kappa if model == "single-material" else None)
-
-
-def _diffuser_kappa(material: str, beta_over_delta: float | None, energy_eV: float) -> float:
-    """kappa = beta/delta of the diffuser: the one given, else its material's at the energy."""
-    if beta_over_delta is not None:
-        if not beta_over_delta >= 0:
-            raise ValueError(f"diffuser_beta_over_delta must be >= 0, got {beta_over_delta}")
-        return float(beta_over_delta)
-    d, b = delta_beta(material, energy_eV)
-    return b / d
 
 
 #: Smallest measured drift (pixels, either axis) that ``diffuser_drift="auto"`` corrects on a
@@ -541,10 +537,10 @@ def retrieve_projection(
     ``diffuser_model="single-material"`` fits exp(-(kappa + i) theta) with kappa =
     ``diffuser_beta_over_delta`` or, when None, beta/delta of ``diffuser_material`` at the
     energy (xraydb) in ``diffuser_refine_iter`` L-BFGS iterations; ``"zero-phase"`` is the
-    paper's estimate; ``"auto"`` (default) takes the single material where its kappa reaches
-    :data:`pwf_dask.calibration.AUTO_MIN_KAPPA` (0.009: silicon carbide up to ~11 keV), else
-    zero phase, and records the choice (``parameters["diffuser_model"]``, beside
-    ``"diffuser_model_requested"``).
+    paper's estimate; ``"auto"`` (default) takes the single material where the diffuser's
+    linear attenuation coefficient reaches :data:`pwf_dask.calibration.AUTO_MIN_ATTENUATION_PER_M`
+    (5 /mm: silicon carbide up to ~11 keV), else zero phase, and records the choice
+    (``parameters["diffuser_model"]``, beside ``"diffuser_model_requested"``).
     With ``diffuser_upstream_m`` t_r is the fitted diffuser's field at the
     sample plane (:func:`pwf_dask.calibration.diffuser_transmission`).
 

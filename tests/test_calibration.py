@@ -226,19 +226,20 @@ def test_shift_transmission_is_a_roll_for_whole_pixels(rng):
 
 
 def test_auto_diffuser_model_follows_the_diffusers_absorption():
-    """``"auto"``: silicon carbide at 10 keV (kappa 0.011) keeps the single-material fit, at
-    12.5 keV and above (0.007) the zero-phase estimate; a named model passes as given, an
-    unknown one is refused in one line naming the choices."""
+    """``"auto"``: silicon carbide at 10 keV (7.4 /mm) and alumina at 10 keV (6.2 /mm; beta/delta
+    0.0075, so not a kappa rule) keep the single-material fit, silicon carbide at 12.5 keV and
+    above (3.8 /mm) takes the zero-phase estimate; a named model passes as given, an unknown
+    one is refused in one line naming the choices."""
     from pwf_dask.physics.materials import delta_beta
 
-    def kappa(energy_eV):
-        d, b = delta_beta("silicon carbide", energy_eV)
-        return b / d
+    def mu(material, energy_eV):
+        return 2 * 2 * np.pi / optics.wavelength_m(energy_eV) * delta_beta(material, energy_eV)[1]
 
-    assert calibration.choose_diffuser_model("auto", kappa(10e3)) == "single-material"
+    choose = calibration.choose_diffuser_model
+    assert choose("auto", mu("silicon carbide", 10e3)) == choose("auto", mu("alumina", 10e3)) == "single-material"
     for energy_eV in (12.5e3, 20e3, 25e3):
-        assert calibration.choose_diffuser_model("auto", kappa(energy_eV)) == "zero-phase"
-    assert 0.007 < calibration.AUTO_MIN_KAPPA < kappa(10e3)
-    assert calibration.choose_diffuser_model("single-material", kappa(20e3)) == "single-material"
+        assert choose("auto", mu("silicon carbide", energy_eV)) == "zero-phase"
+    assert mu("silicon carbide", 12.5e3) < calibration.AUTO_MIN_ATTENUATION_PER_M < mu("alumina", 10e3)
+    assert choose("single-material", mu("silicon carbide", 20e3)) == "single-material"
     with pytest.raises(ValueError, match="unknown diffuser_model 'random'.*auto"):
-        calibration.choose_diffuser_model("random", kappa(20e3))
+        choose("random", 1e4)

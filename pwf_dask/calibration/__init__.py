@@ -19,7 +19,7 @@ from pwf_dask.calibration.coherence import (
     white_noise_floor,
 )
 from pwf_dask.calibration.diffuser import (
-    AUTO_MIN_KAPPA,
+    AUTO_MIN_ATTENUATION_PER_M,
     DIFFUSER_MODEL_CHOICES,
     DIFFUSER_MODELS,
     DiffuserEstimate,
@@ -32,7 +32,7 @@ from pwf_dask.calibration.diffuser import (
 from pwf_dask.calibration.drift import shift_transmission, speckle_drift_px, unseen_by_reference
 
 __all__ = [
-    "AUTO_MIN_KAPPA",
+    "AUTO_MIN_ATTENUATION_PER_M",
     "COHERENCE_METHODS",
     "DIFFUSER_MODEL_CHOICES",
     "DIFFUSER_MODELS",

@@ -125,20 +125,23 @@ def refine_phase_screen(t, detector_amplitude, pixel_size_m, wavelength, distanc
 DIFFUSER_MODELS = ("single-material", "zero-phase")
 #: what ``diffuser_model`` may ask for: a model, or ``"auto"`` (:func:`choose_diffuser_model`)
 DIFFUSER_MODEL_CHOICES = (*DIFFUSER_MODELS, "auto")
-#: the diffuser's beta/delta below which ``"auto"`` takes the zero-phase estimate: under it the
-#: single-material fit drifts (docs/validation.md, "Weak diffuser absorption")
-AUTO_MIN_KAPPA = 0.009
+#: the diffuser material's linear attenuation coefficient (1/m) below which ``"auto"`` takes the
+#: zero-phase estimate: under it the single-material fit drifts (docs/methods.md, "Weak diffuser
+#: absorption"); silicon carbide reaches it near 11.4 keV, alumina near 10.7 keV
+AUTO_MIN_ATTENUATION_PER_M = 5e3
 
 
-def choose_diffuser_model(diffuser_model: str, beta_over_delta: float) -> str:
+def choose_diffuser_model(diffuser_model: str, attenuation_per_m: float) -> str:
     """The diffuser model to fit: ``"auto"`` takes the single material where the diffuser's
-    kappa = beta/delta reaches :data:`AUTO_MIN_KAPPA`, else the paper's zero-phase estimate.
+    linear attenuation coefficient mu = 2 k beta reaches :data:`AUTO_MIN_ATTENUATION_PER_M`,
+    else the paper's zero-phase estimate.
 
-    The single-material fit sees the slow part of theta only through kappa (the absorption
-    term of the CTF). Where kappa is small (silicon carbide above ~11 keV: 0.011 at 10 keV,
-    0.007 at 12.5, 0.003 at 20) each fit iteration lowers the sample's phase gain, from 0.96 at
-    the fit's linear start to 0.40 after the default 25 at 20 keV, and zero phase is the better
-    model (Methods, Diffuser transmission function). Any other model is returned as given.
+    The single-material fit sees the slow part of theta only through the grains' absorption
+    (kappa theta, the absorption term of the CTF). Where they hardly absorb (silicon carbide:
+    mu 7.4 /mm at 10 keV, 3.8 at 12.5, 0.9 at 20) each fit iteration lowers the sample's phase
+    gain, from 0.96 at the fit's linear start to 0.40 after the default 25 at 20 keV, and zero
+    phase is the better model (Methods, Diffuser transmission function). Any other model is
+    returned as given.
     """
     if diffuser_model not in DIFFUSER_MODEL_CHOICES:
         raise ValueError(
@@ -146,7 +149,7 @@ def choose_diffuser_model(diffuser_model: str, beta_over_delta: float) -> str:
         )
     if diffuser_model != "auto":
         return diffuser_model
-    return "single-material" if beta_over_delta >= AUTO_MIN_KAPPA else "zero-phase"
+    return "single-material" if attenuation_per_m >= AUTO_MIN_ATTENUATION_PER_M else "zero-phase"
 
 
 @dataclass
