@@ -243,3 +243,22 @@ def test_auto_diffuser_model_follows_the_diffusers_absorption():
     assert choose("single-material", mu("silicon carbide", 20e3)) == "single-material"
     with pytest.raises(ValueError, match="unknown diffuser_model 'random'.*auto"):
         choose("random", 1e4)
+
+
+def test_coherent_speckle_is_the_screens_transmission_at_zero_distance_and_follows_its_distance():
+    """The calibration's templates (:func:`diffusers.coherent_speckle`): at L = 0 the intensity
+    is |t|^2 of the grains' screen, pixel-integrated; the propagation kernel kept between calls
+    belongs to its distance (a call at another distance in between changes nothing)."""
+    from pwf_dask.physics import diffusers
+
+    geo = dict(pixel_size_m=0.65e-6, energy_eV=10_000.0, radius_median_m=3.25e-6, seed=3)
+    near = diffusers.coherent_speckle((48, 64), distance_m=0.02, **geo)
+    far = diffusers.coherent_speckle((48, 64), distance_m=0.05, **geo)
+    assert np.array_equal(diffusers.coherent_speckle((48, 64), distance_m=0.02, **geo), near)
+    assert near.std() > 0.05 and not np.allclose(near, far, atol=0.05)
+    thickness = diffusers.grain_thickness(
+        (96, 128), 0.325e-6, np.random.default_rng(3), radius_median_m=3.25e-6, grain_shape="mixed"
+    )
+    screen = np.abs(diffusers.transmission(thickness, 10_000.0)) ** 2
+    screen = screen.reshape(48, 2, 64, 2).mean(axis=(1, 3))
+    np.testing.assert_allclose(diffusers.coherent_speckle((48, 64), distance_m=0.0, **geo), screen / screen.mean())
