@@ -360,6 +360,29 @@ def test_simulate_with_the_diffuser_upstream_records_l1_zero(tmp_path):
     assert scan_io.open_scan(scan) is not None  # a valid CONTRACT §1 scan
 
 
+@pytest.mark.parametrize("photons", [1e4, 1e6])
+def test_simulated_raw_counts_fit_sixteen_bits_at_any_dose(tmp_path, photons):
+    """Raw uint16 counts: at 1e4 ph/px one photon is one count; above 1.6e4 a count stands for
+    several photons, so the flat keeps below 65535 (at 1e5 it wrapped and 76 % of the frames
+    clipped). Flat/dark-corrected, the raw reference is the corrected scan's reference (the same
+    speckle) within both scans' photon noise."""
+    raw, corrected = tmp_path / "raw.zarr", tmp_path / "corrected.zarr"
+    scene = dict(preset="demo", shape=(48, 64), angles=2, positions=1, photons=photons, progress=False)
+    simulate_scan(raw, **scene)
+    simulate_scan(corrected, raw=False, **scene)
+    ds = xr.open_zarr(raw)
+    per_count = ds.attrs["simulation_photons_per_count"]
+    assert per_count == max(1.0, photons / 16_000)
+    flat, dark = ds.flat.values.astype(float), ds.dark.values.astype(float)
+    np.testing.assert_allclose((flat - dark).max() * per_count, photons, rtol=1e-3)
+    for frame in (ds.reference.values[0], ds.projections.values[0, 0]):
+        assert np.mean(frame == 65535) < 1e-3
+    reference = (ds.reference.values[0] - dark) / (flat - dark)
+    truth = xr.open_zarr(corrected).reference.values[0].astype(float)
+    difference = reference / reference.mean() - truth / truth.mean()
+    assert np.sqrt(np.mean(difference**2)) < 3 * np.sqrt(2 / photons)
+
+
 @pytest.mark.parametrize("shape", [(32, 256), (33, 200)])
 def test_simulate_a_slab_of_few_rows(tmp_path, shape):
     """A wide frame of few rows (a slab of a detector) holds beads that fit its height (the

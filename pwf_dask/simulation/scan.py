@@ -122,6 +122,7 @@ def simulate_scan(
     detector = SimulatedDetector(shape, photons, raw, seed, zingers)
     if raw:
         g["flat"][...], g["dark"][...] = detector.flat(), detector.dark()
+        g.attrs["simulation_photons_per_count"] = detector.photons_per_count
     drift = np.asarray(diffuser_drift_px, float)
     _simulate_frames(g, setup, phantom, angles_deg, n_pos, seed, drift, dark_field_px, detector, progress)
     scan_io.consolidate(path)
@@ -173,19 +174,26 @@ class SimulatedDetector:
 
     #: the dark frame's counts
     DARK_LEVEL = 100.0
+    #: the most counts a raw flat frame reaches: a quarter of the 16-bit range, as an exposure is
+    #: set below full well, so that the speckle's bright spots (up to ~4x the flat) fit. Above
+    #: it a count stands for several photons (:attr:`photons_per_count`, a camera's gain); below
+    #: it one photon is one count. Without it 1e5 ph/px wrapped the flat past 65535 and clipped
+    #: three quarters of every frame.
+    FLAT_COUNTS_MAX = 16_000.0
 
     def __init__(self, shape: tuple[int, int], photons: float, raw: bool, seed: int, zingers: float):
         ny, nx = shape
         yy, xx = np.mgrid[0:ny, 0:nx]
         self.beam = 1.0 - 0.15 * (((xx - nx / 2) / nx) ** 2 + ((yy - ny / 2) / ny) ** 2)  # flat-field profile
         self.shape, self.photons, self.raw = shape, photons, raw
+        self.photons_per_count = max(1.0, photons / self.FLAT_COUNTS_MAX) if raw else 1.0
         self.noise_rng = np.random.default_rng(seed + 7)
         # its own stream, so that a scan without zingers is the scan simulated before they existed
         self.zinger_rng = np.random.default_rng(seed + 13)
         self.n_zingers = int(round(zingers * ny * nx))
 
     def flat(self) -> np.ndarray:
-        return np.round(self.beam * self.photons + self.DARK_LEVEL).astype(np.uint16)
+        return np.round(self.beam * self.photons / self.photons_per_count + self.DARK_LEVEL).astype(np.uint16)
 
     def dark(self) -> np.ndarray:
         return np.full(self.shape, self.DARK_LEVEL, np.uint16)
@@ -201,9 +209,10 @@ class SimulatedDetector:
         if not self.raw:
             img = (self.noise_rng.poisson(np.clip(intensity, 0, None) * photons) / photons).astype(np.float32)
             return self._add_zingers(img, 1.0) if self.n_zingers else img
-        counts = self.noise_rng.poisson(np.clip(intensity, 0, None) * self.beam * photons) + self.DARK_LEVEL
+        detected = self.noise_rng.poisson(np.clip(intensity, 0, None) * self.beam * photons)
+        counts = np.round(detected / self.photons_per_count) + self.DARK_LEVEL
         if self.n_zingers:
-            counts = self._add_zingers(counts.astype(np.float64), photons)
+            counts = self._add_zingers(counts, photons / self.photons_per_count)
         return np.clip(counts, 0, 65535).astype(np.uint16)
 
 
