@@ -25,6 +25,24 @@ def test_simulate_never_writes_over_an_existing_path(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(
+    "option, named",
+    [
+        (["--photons", "0"], "photons"),  # a given 0 was replaced by the preset's 1e4
+        (["--photons", "nan"], "photons"),
+        (["--positions", "0"], "position"),
+        (["--grain-radius-um", "0"], "diffuser_radius_median_m"),
+        (["--axis-offset-px", "1e6"], "rotation_axis_offset_px"),  # the sample never in the frame
+    ],
+)
+def test_bad_simulate_option_is_refused_in_one_line_and_writes_nothing(tmp_path, capsys, option, named):
+    scan = tmp_path / "scan.zarr"
+    assert cli.main(["simulate", str(scan), "--preset", "demo", "--angles", "3", *option]) != 0
+    err = capsys.readouterr().err.strip()
+    assert named in err and len(err.splitlines()) == 1
+    assert not scan.exists()
+
+
+@pytest.mark.parametrize(
     "option",
     [
         ["--max-iter", "-5"],

@@ -84,10 +84,13 @@ def simulate_scan(
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
     cfg = PRESETS[preset]
-    shape = tuple(shape or cfg["shape"])
-    n_ang, n_pos = int(angles or cfg["angles"]), int(positions or cfg["positions"])
-    photons = float(photons or cfg["photons"])
+    # None takes the preset's value; a 0 given is checked, not replaced by the preset's
+    shape = tuple(cfg["shape"] if shape is None else shape)
+    n_ang = int(cfg["angles"] if angles is None else angles)
+    n_pos = int(cfg["positions"] if positions is None else positions)
+    photons = float(cfg["photons"] if photons is None else photons)
     _check_scene(shape, n_ang, n_pos, photons, diffuser_drift_px, cylinder_width_fraction, dark_field_px, zingers)
+    _check_diffuser_and_axis(shape, rotation_axis_offset_px, diffuser_radius_median_m)
     setup = SpeckleSetup(
         shape=shape,
         photons=photons,
@@ -129,10 +132,21 @@ def simulate_scan(
     return str(path)
 
 
-def _check_scene(shape, n_ang, n_pos, photons, drift_px, cylinder_width_fraction, dark_field_px, zingers) -> None:
-    if n_ang < 2 or n_pos < 1 or min(shape) < 32 or photons <= 0:
+def _check_diffuser_and_axis(shape, rotation_axis_offset_px: float, diffuser_radius_median_m) -> None:
+    """One line for an axis that puts the sample outside the frame, or grains of no size."""
+    if not abs(float(rotation_axis_offset_px)) < 0.5 * shape[1]:
         raise ValueError(
-            f"simulate: need >= 2 angles, >= 1 position, >= 32 x 32 px, photons > 0; got "
+            f"simulate: rotation_axis_offset_px must lie inside the frame (|offset| < {0.5 * shape[1]:g} px "
+            f"for {shape[1]} columns), got {rotation_axis_offset_px}"
+        )
+    if diffuser_radius_median_m is not None and not float(diffuser_radius_median_m) > 0:
+        raise ValueError(f"simulate: diffuser_radius_median_m must be > 0, got {diffuser_radius_median_m}")
+
+
+def _check_scene(shape, n_ang, n_pos, photons, drift_px, cylinder_width_fraction, dark_field_px, zingers) -> None:
+    if n_ang < 2 or n_pos < 1 or min(shape) < 32 or not (photons > 0 and np.isfinite(photons)):
+        raise ValueError(
+            f"simulate: need >= 2 angles, >= 1 position, >= 32 x 32 px, finite photons > 0; got "
             f"{n_ang}, {n_pos}, {shape}, {photons}"
         )
     drift = np.asarray(drift_px, float)
