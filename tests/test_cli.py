@@ -280,3 +280,21 @@ def test_a_run_failing_before_its_first_projection_leaves_no_store(tmp_path, cap
     assert not recon.exists()
     monkeypatch.undo()
     assert cli.main(["retrieve", str(scan), str(recon), "--max-iter", "10"]) == 0
+
+
+@pytest.mark.parametrize("center_um", ["nan", "1e9"])
+def test_tomo_refuses_a_centre_off_the_frame_and_keeps_the_tomograms(tmp_path, capsys, center_um):
+    """A given centre that is NaN or off the detector made NaN or empty tomograms (exit 0)."""
+    import numpy as np
+    import xarray as xr
+
+    scan, recon = tmp_path / "scan.zarr", tmp_path / "recon.zarr"
+    small = ["--preset", "demo", "--shape", "32", "64", "--angles", "3", "--positions", "1"]
+    assert cli.main(["simulate", str(scan), *small]) == 0
+    assert cli.main(["-q", "run", str(scan), str(recon), "--max-iter", "5", "--center-um", "1.6"]) == 0
+    before = xr.open_zarr(recon).delta.values
+    capsys.readouterr()
+    assert cli.main(["tomo", str(recon), "--center-um", center_um]) != 0
+    err = capsys.readouterr().err.strip()
+    assert "inside the frame" in err and len(err.splitlines()) == 1
+    np.testing.assert_array_equal(xr.open_zarr(recon).delta.values, before)

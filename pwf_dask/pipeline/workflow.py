@@ -745,6 +745,17 @@ def rotation_center(recon_path) -> float:
     return c if c is not None else tomography.estimate_rotation_center(sino, angles, pix)
 
 
+def _check_center(center_m: float, g) -> None:
+    """One line for a given rotation centre that is not a number or lies off the detector
+    (the tomograms would be NaN or empty), before anything is written."""
+    half_width_m = 0.5 * g["phase"].shape[-1] * float(g.attrs["pixel_size_m"])
+    if not abs(float(center_m)) < half_width_m:
+        raise ValueError(
+            f"center_m must be a finite offset inside the frame (|c| < {half_width_m * 1e6:.2f} µm from its centre), "
+            f"got {float(center_m) * 1e6:g} µm"
+        )
+
+
 def tomo_scan(
     recon_path,
     *,
@@ -771,6 +782,8 @@ def tomo_scan(
         raise scan_io.ScanError(f"{path}: not a reconstruction store (no 'phase')")
     _check_retrieved(path, g)
     estimated = center_m is None
+    if not estimated:
+        _check_center(center_m, g)
     if estimated:
         try:
             center_m = rotation_center(path)
