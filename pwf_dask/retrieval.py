@@ -95,10 +95,19 @@ class RetrievalResult:
     background: Any = None  # boolean mask of the pixels the plane was fitted on
 
 
+def _check_real(name: str, a) -> None:
+    """Intensities are real numbers: a complex image (its imaginary part would be dropped with
+    a warning) or a boolean mask is refused in one line."""
+    kind = a.dtype.kind
+    if kind not in "uif":
+        raise ValueError(f"{name} must hold real intensities, got dtype {a.dtype}")
+
+
 def _check_image(name: str, a, xp) -> Any:
     if a is None:
         raise ValueError(f"{name} is missing")
     a = xp.asarray(a)
+    _check_real(name, a)
     if a.ndim != 2:
         raise ValueError(f"{name} must be a 2-D image, got {a.ndim} dimensions")
     if min(a.shape) < 16:
@@ -1138,6 +1147,8 @@ def _initial_psi(initial, sample, reference, model, energy_eV, pixel_size_m, dif
 def _checked_tracking_frames(sample, reference, xp):
     """Both stacks as float64, refused in one line where their shapes differ or a value is
     non-finite or negative."""
+    for name, a in (("sample", sample), ("reference", reference)):
+        _check_real(name, xp.asarray(a))
     s = xp.asarray(sample, dtype=xp.float64)
     r = xp.asarray(reference, dtype=xp.float64)
     if s.shape != r.shape or s.ndim not in (2, 3):

@@ -286,6 +286,9 @@ def test_a_known_upstream_distance_lowers_the_error(seed):
         (dict(diffuser_upstream_m=-1e-3), "diffuser_upstream_m must be >= 0"),
         (dict(sample=np.full((64, 64), np.nan)), "non-finite"),
         (dict(reference=-np.ones((64, 64))), "negative"),
+        (dict(sample=np.ones((64, 64), complex)), "real intensities"),  # its imaginary part was dropped
+        (dict(reference=np.ones((64, 64), bool)), "real intensities"),
+        (dict(sample=np.ones((64, 64), complex), method="lcs"), "real intensities"),
         (dict(sample=np.ones(64)), "2-D"),
         (dict(diffuser_detector_distance_m=0.0), "diffuser_detector_distance_m must be positive"),
         (dict(method="magic"), "unknown method"),
