@@ -456,6 +456,7 @@ def retrieve_projection(
     options: RetrievalOptions | None = None,
     diffuser=None,
     background_mask=None,
+    bad_pixels=None,
     **keywords,
 ) -> RetrievalResult:
     """Retrieve phase and attenuation from one flat/dark-corrected speckle image (docs/scan-format.md §4).
@@ -509,6 +510,10 @@ def retrieve_projection(
     background_mask, zero_background : array of bool, bool
         Sample-free pixels (True) that override the detected background; whether the phase and
         attenuation are zeroed there by a fitted plane (:mod:`pwf_dask.physics.background`).
+    bad_pixels : array of bool, optional
+        Not in the paper; PWF only: sample pixels that are no measurement (True), such as raw
+        counts saturated at the detector's full scale (the workflow finds those); left out of
+        the data term, as the detector test's spikes are.
     normalization, phase_scale : str, float or "auto"
         The objective's scale (the paper's) and the metric scale kappa of the phase block.
     fft_workers : int, optional
@@ -580,6 +585,8 @@ def retrieve_projection(
         raise ValueError(f"unknown method {opts.method!r}: choose one of {', '.join(METHODS)}")
     check_single_material(opts.single_material, opts.method)
     if opts.method != "pwf":
+        if bad_pixels is not None:
+            raise ValueError(f"bad_pixels: only PWF leaves pixels out of its fit, not {opts.method}")
         return _retrieve_by_tracking(
             sample, reference, opts, energy_eV, pixel_size_m, diffuser_detector_distance_m, background_mask
         )
@@ -595,6 +602,7 @@ def retrieve_projection(
     ref, ref_outliers = repair_outliers(ref, opts.outlier_sigma)
     y, outliers = repair_outliers(y, opts.outlier_sigma)
     n_outliers = int(outliers.sum())
+    bad = _checked_bad_pixels(bad_pixels, y.shape, xp)
     coherence = _coherence(ref, geometry, opts)
     opts = _resolved_grids(opts, geometry, coherence)
     fft = FFT.for_module(xp, opts.fft_workers)
@@ -605,6 +613,8 @@ def retrieve_projection(
     drift, unseen = measured_drift(y, ref, opts.diffuser_drift, fft)
     moved = unseen is not None
     excluded = outliers if n_outliers else None
+    if bad is not None:
+        excluded = bad if excluded is None else excluded | bad
     if moved:
         t = calibration.shift_transmission(t, drift, fft=fft)
         # the grains that drifted into the frame were never in the reference
@@ -649,9 +659,23 @@ def retrieve_projection(
             moved=moved,
             outliers=n_outliers,
             reference_outliers=int(ref_outliers.sum()),
+            bad_pixels=0 if bad is None else int(bad.sum()),
         ),
         background=mask,
     )
+
+
+def _checked_bad_pixels(bad_pixels, frame_shape: tuple[int, int], xp):
+    """``bad_pixels`` as a boolean array of the frame's shape on the images' device, None where
+    none is given or none is set; one line for another shape or a non-boolean map."""
+    if bad_pixels is None:
+        return None
+    bad = xp.asarray(bad_pixels)
+    if bad.dtype != bool or tuple(bad.shape) != tuple(frame_shape):
+        raise ValueError(
+            f"bad_pixels must be a boolean map of the frame's shape {frame_shape}, got {bad.dtype} {bad.shape}"
+        )
+    return bad if bool(bad.any()) else None
 
 
 def _check_pair(sample, reference, xp):
@@ -975,6 +999,7 @@ def _parameters(
     moved: bool,
     outliers: int,
     reference_outliers: int,
+    bad_pixels: int = 0,
 ) -> dict:
     """Every choice a PWF retrieval made, given or found (``RetrievalResult.parameters``)."""
     return {
@@ -1017,6 +1042,7 @@ def _parameters(
         "outlier_sigma": opts.outlier_sigma,
         "outlier_pixels": outliers,
         "outlier_pixels_reference": reference_outliers,
+        "bad_pixels": bad_pixels,
         "diffuser_drift": opts.diffuser_drift if isinstance(opts.diffuser_drift, str) else "given",
         "diffuser_drift_px": [float(drift[0]), float(drift[1])],
         "diffuser_moved": bool(moved),

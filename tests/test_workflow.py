@@ -383,6 +383,36 @@ def test_simulated_raw_counts_fit_sixteen_bits_at_any_dose(tmp_path, photons):
     assert np.sqrt(np.mean(difference**2)) < 3 * np.sqrt(2 / photons)
 
 
+def test_raw_counts_at_full_scale_are_left_out_of_the_fit_and_reported_once(tmp_path, monkeypatch, caplog):
+    """Raw uint16 counts at 65535 are saturated: PWF's task passes them as ``bad_pixels``, and
+    the run says so in one line, however many frames have them."""
+    import logging
+
+    from pwf_dask import retrieval
+
+    scan, recon = tmp_path / "scan.zarr", tmp_path / "recon.zarr"
+    simulate_scan(scan, preset="demo", shape=(32, 64), angles=3, positions=1, seed=1, progress=False)
+    g = zarr.open_group(str(scan), mode="r+")
+    frames = g["projections"][...]
+    frames[0, :, 10:12, 20:23] = 65535  # a bright spot clipped in every frame
+    g["projections"][...] = frames
+    assert workflow.saturated_pixels(frames[0, 1]).sum() == 6
+    assert workflow.saturated_pixels(frames[0, 1].astype(np.float32)) is None  # full scale unknown
+    passed = []
+    original = retrieval.retrieve_projection
+
+    def spy(*args, **kwargs):
+        passed.append(kwargs.get("bad_pixels"))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(retrieval, "retrieve_projection", spy)
+    with caplog.at_level(logging.WARNING, logger="pwf_dask.pipeline.workflow"):
+        workflow.retrieve_scan(scan, recon, **FAST)
+    assert len(passed) == 3 and all(int(b.sum()) == 6 and bool(b[10:12, 20:23].all()) for b in passed)
+    said = [r.getMessage() for r in caplog.records if "saturated" in r.getMessage()]
+    assert len(said) == 1 and "6 pixels of projection" in said[0]
+
+
 @pytest.mark.parametrize("shape", [(32, 256), (33, 200)])
 def test_simulate_a_slab_of_few_rows(tmp_path, shape):
     """A wide frame of few rows (a slab of a detector) holds beads that fit its height (the

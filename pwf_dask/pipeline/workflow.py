@@ -46,9 +46,40 @@ log = logging.getLogger(__name__)
 MULTI_IMAGE = ("lcs", "umpa", "mist")
 
 
-def _read_corrected(g, name, index, flat, dark, corrected):
+def _read_corrected(g, name, index, flat, dark, corrected, with_saturated: bool = False):
+    """One frame flat/dark-corrected; ``with_saturated``: and its saturated pixels
+    (:func:`saturated_pixels`) beside it."""
     frame = integrity.read_checked(integrity.store_root(g), g[name], name, index)
-    return scan_io.correct(frame, flat, dark, corrected)
+    image = scan_io.correct(frame, flat, dark, corrected)
+    return (image, saturated_pixels(frame, corrected)) if with_saturated else image
+
+
+def saturated_pixels(frame, corrected: bool = False):
+    """Raw integer counts at their type's full scale (65535 for uint16), which the detector
+    clipped: they read low, so PWF leaves them out of its fit. None where there are none, or
+    for corrected or floating-point frames, whose full scale is unknown."""
+    a = np.asarray(frame)
+    if corrected or a.dtype.kind not in "ui":
+        return None
+    clipped = a >= np.iinfo(a.dtype).max
+    return clipped if clipped.any() else None
+
+
+#: scans whose saturated pixels this process has reported (one line each, not one per frame)
+_SATURATION_REPORTED: set[str] = set()
+
+
+def _report_saturation(scan_path, what: str, count: int) -> None:
+    key = str(scan_path)
+    if key not in _SATURATION_REPORTED:
+        _SATURATION_REPORTED.add(key)
+        log.warning(
+            "%s: %d pixels of %s are saturated (raw counts at full scale); PWF leaves a sample frame's out of "
+            "its fit, a reference's are read low: lower the exposure if many frames have them",
+            key,
+            count,
+            what,
+        )
 
 
 def _read_reference(g, p, flat, dark, corrected, outlier_sigma):
@@ -236,13 +267,19 @@ def _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, co
         npos = g["projections"].shape[0]
         sample = np.stack([_read_corrected(g, "projections", (k, a), flat, dark, corrected) for k in range(npos)])
         reference = np.stack([_read_corrected(g, "reference", k, flat, dark, corrected) for k in range(npos)])
+        clipped = None  # the trackers fit every pixel
     else:
-        sample = _read_corrected(g, "projections", (p, a), flat, dark, corrected)
+        sample, clipped = _read_corrected(g, "projections", (p, a), flat, dark, corrected, with_saturated=True)
         # as read: retrieve_projection repairs its spikes, and the diffuser fit (once per
         # position, :func:`_fit_diffusers`) repaired its own copy
-        reference = _read_corrected(g, "reference", p, flat, dark, corrected)
+        reference, clipped_reference = _read_corrected(g, "reference", p, flat, dark, corrected, with_saturated=True)
+        if clipped_reference is not None:
+            _report_saturation(scan_path, f"reference {p}", int(clipped_reference.sum()))
     xp = resolve_device(device)
     extra = {}
+    if options.get("method", "pwf") == "pwf" and clipped is not None:
+        extra["bad_pixels"] = xp.asarray(clipped)
+        _report_saturation(scan_path, f"projection {(p, a)}", int(clipped.sum()))
     if start_from is not None:
         done = zarr.open_group(str(recon_path), mode="r", use_consolidated=False)
         psi = -done["attenuation"][start_from].astype(np.complex64)
