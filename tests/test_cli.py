@@ -298,3 +298,18 @@ def test_tomo_refuses_a_centre_off_the_frame_and_keeps_the_tomograms(tmp_path, c
     err = capsys.readouterr().err.strip()
     assert "inside the frame" in err and len(err.splitlines()) == 1
     np.testing.assert_array_equal(xr.open_zarr(recon).delta.values, before)
+
+
+def test_a_reconstruction_inside_the_scan_store_is_refused_and_fsc_names_a_scan_store(tmp_path, capsys):
+    """The reconstruction (and its figures) went inside the scan store, changing the input."""
+    scan = tmp_path / "scan.zarr"
+    assert cli.main(["simulate", str(scan), "--preset", "demo", "--shape", "32", "64", "--angles", "3"]) == 0
+    before = sorted(p.name for p in scan.iterdir())
+    capsys.readouterr()
+    for recon in (scan, scan / "recon.zarr"):
+        assert cli.main(["run", str(scan), str(recon), "--max-iter", "5"]) != 0
+        err = capsys.readouterr().err.strip()
+        assert "must lie outside the scan store" in err and len(err.splitlines()) == 1
+    assert sorted(p.name for p in scan.iterdir()) == before
+    assert cli.main(["fsc", str(scan)]) != 0
+    assert "not a reconstruction store" in capsys.readouterr().err

@@ -407,6 +407,8 @@ def retrieve_scan(
     )
     # tasks may run in other working directories (distributed workers)
     scan_path, recon_path = str(Path(scan_path).resolve()), str(Path(recon_path).resolve())
+    if Path(recon_path).is_relative_to(scan_path) or Path(scan_path).is_relative_to(recon_path):
+        raise ValueError(f"{recon_path}: the reconstruction store must lie outside the scan store {scan_path}")
     ds, info = scan_io.open_scan(scan_path)
     # the scan's recorded geometry unless the caller gave the upstream distance (PWF reads it)
     geometry = Geometry.from_attrs(
@@ -997,7 +999,9 @@ def fsc_scan(recon_path, *, split: str = "auto", criterion: str = "1/4", pairs: 
 
     path = str(recon_path)
     g = zarr.open_group(path, mode="r+", use_consolidated=False)
-    if "phase" in g and g["phase"].shape[1] < 2:
+    if "phase" not in g:
+        raise scan_io.ScanError(f"{path}: not a reconstruction store (no 'phase')")
+    if g["phase"].shape[1] < 2:
         raise scan_io.ScanError(f"{path}: one angle; FSC needs tomograms, from >= 2 angles")
     if "delta" not in g or int(g["tomo_done"][...].min()) == 0:
         raise scan_io.ScanError(f"{path}: tomograms incomplete; run 'pwf-dask tomo' first")
