@@ -12,6 +12,10 @@ pixel is a defect when it stands above the largest of its 8 neighbours, or below
 smallest, by more than ``threshold_sigma`` robust noise sigmas (:func:`noise_sigma`, which
 the photon noise dominates). Clusters of two or more bright pixels are not caught (each has a
 bright neighbour); the measured false alarms are in docs/validation.md.
+
+Saturation is found on the raw counts instead (:func:`saturated_pixels`): a bright speckle
+spot clipped at the detector's full scale spans several pixels, which the neighbour test
+cannot see, and after flat/dark correction its level is no longer recognisable.
 """
 
 from __future__ import annotations
@@ -122,3 +126,14 @@ def repair_outliers(image, threshold_sigma: float | None = DEFAULT_OUTLIER_SIGMA
     repaired = img.copy()
     repaired[rows, cols] = xp.median(neighbours, axis=0).astype(img.dtype, copy=False)
     return repaired, outliers
+
+
+def saturated_pixels(frame, corrected: bool = False):
+    """Raw integer counts at their type's full scale (65535 for uint16), which the detector
+    clipped: they read low, so PWF leaves them out of its fit (``bad_pixels``). None where
+    there are none, or for corrected or floating-point frames, whose full scale is unknown."""
+    a = np.asarray(frame)
+    if corrected or a.dtype.kind not in "ui":
+        return None
+    clipped = a >= np.iinfo(a.dtype).max
+    return clipped if clipped.any() else None

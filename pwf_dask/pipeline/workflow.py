@@ -24,7 +24,7 @@ from pwf_dask import __version__, calibration
 from pwf_dask.backend import resolve_device, to_numpy
 from pwf_dask.baselines.tracking import MIN_POSITIONS
 from pwf_dask.options import DEFAULTS, check_option_names
-from pwf_dask.physics.detector import check_threshold, repair_outliers
+from pwf_dask.physics.detector import check_threshold, repair_outliers, saturated_pixels
 from pwf_dask.physics.geometry import Geometry
 from pwf_dask.physics.optics import wavelength_m
 from pwf_dask.pipeline.cluster import Runner, check_scheduler, worker_fft_threads
@@ -52,17 +52,6 @@ def _read_corrected(g, name, index, flat, dark, corrected, with_saturated: bool 
     frame = integrity.read_checked(integrity.store_root(g), g[name], name, index)
     image = scan_io.correct(frame, flat, dark, corrected)
     return (image, saturated_pixels(frame, corrected)) if with_saturated else image
-
-
-def saturated_pixels(frame, corrected: bool = False):
-    """Raw integer counts at their type's full scale (65535 for uint16), which the detector
-    clipped: they read low, so PWF leaves them out of its fit. None where there are none, or
-    for corrected or floating-point frames, whose full scale is unknown."""
-    a = np.asarray(frame)
-    if corrected or a.dtype.kind not in "ui":
-        return None
-    clipped = a >= np.iinfo(a.dtype).max
-    return clipped if clipped.any() else None
 
 
 #: scans whose saturated pixels this process has reported (one line each, not one per frame)
