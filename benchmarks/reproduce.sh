@@ -42,12 +42,13 @@ case "${1:-all}" in
   frame-grits) "$(dirname "$PWF")/python" -m benchmarks.frame_size --scenes grits --out "$OUT" ;;
   frame-camera) "$(dirname "$PWF")/python" -m benchmarks.frame_size --scenes camera --out "$OUT" ;;
   edge-step) "$(dirname "$PWF")/python" -m benchmarks.edge_step --out "$OUT" ;;
+  demo-dose) "$(dirname "$PWF")/python" -m benchmarks.demo_dose --out "$OUT" ;;
   fbp) "$PWF" bench fbp --out "$OUT" ;;
   perscan) "$PWF" bench perscan --out "$OUT" ;;
   fullwidth) "$PWF" bench fullwidth --out "$OUT" ;;
   field-grid) "$(dirname "$PWF")/python" -m benchmarks.field_grid --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-camera edge-step fbp perscan field-grid paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-camera|edge-step|fbp|perscan|field-grid|paper-figures|fullwidth|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-camera edge-step demo-dose fbp perscan field-grid paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-camera|edge-step|demo-dose|fbp|perscan|field-grid|paper-figures|fullwidth|all]" >&2; exit 2 ;;
 esac
