@@ -106,6 +106,7 @@ def _ingest(args) -> int:
         coherence_length_y_m=args.coherence_length_y_m,
         flat_dark_corrected=args.flat_dark_corrected,
         diffuser_upstream_m=args.diffuser_upstream_m,
+        full_scale_counts=args.full_scale_counts,
     )
     print(f"wrote scan {path}")
     return 0
@@ -553,6 +554,12 @@ def _ingest_command(command) -> None:
         type=float,
         default=0.0,
         help="with L1 = 0: the diffuser this far upstream of the sample (recorded for PWF)",
+    )
+    i.add_argument(
+        "--full-scale-counts",
+        type=float,
+        help="raw counts at which the detector saturates, e.g. 4095 for a 12-bit camera (default: the "
+        "frames' integer type maximum); PWF leaves such pixels out of its fit",
     )
     i.add_argument("--coherence-length-x-m", type=float, help="known coherence lengths (else calibrated)")
     i.add_argument("--coherence-length-y-m", type=float, help="(give both, or neither to calibrate)")

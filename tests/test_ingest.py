@@ -209,3 +209,31 @@ def test_raw_counts_without_flat_or_dark_are_ingested_with_a_one_line_warning(so
     err = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
     assert len(err) == 1 and err[0].startswith("pwf-dask: warning: no flat and no dark"), err
     assert scan_io.open_scan(out)[1].has_dark is False
+
+
+def test_the_detectors_full_scale_is_recorded_and_finds_the_saturated_pixels(tmp_path):
+    """8-bit frames are stored as float32, where a type maximum no longer marks saturation: the
+    ingest records 255 (the sources' type maximum) or the full scale given (a 12-bit camera's
+    4095 in 16-bit files), and the retrieval's saturated pixels are read against it."""
+    from pwf_dask.physics.detector import saturated_pixels
+
+    rng = np.random.default_rng(0)
+    frames = (rng.random((3, 32, 48)) * 150 + 50).astype(np.uint8)
+    frames[:, 5, 7] = 255
+    for i, f in enumerate(frames):
+        tifffile.imwrite(tmp_path / f"p{i}.tif", f)
+    tifffile.imwrite(tmp_path / "ref.tif", frames[0])
+    sources = dict(projections=str(tmp_path / "p*.tif"), reference=str(tmp_path / "ref.tif"), angles_range_deg=(0, 180))
+    with pytest.warns(UserWarning, match="no flat and no dark"):
+        ingest_scan(tmp_path / "eight.zarr", **sources, **GEOMETRY, progress=False)
+    ds, info = scan_io.open_scan(tmp_path / "eight.zarr")
+    assert ds["projections"].dtype == np.float32 and info.attrs[scan_io.FULL_SCALE_ATTR] == 255
+    frame = ds["projections"].values[0, 1]
+    assert saturated_pixels(frame) is None  # float32: its type has no full scale
+    assert np.argwhere(saturated_pixels(frame, full_scale=info.attrs[scan_io.FULL_SCALE_ATTR])).tolist() == [[5, 7]]
+    with pytest.warns(UserWarning):
+        ingest_scan(tmp_path / "twelve.zarr", **sources, **GEOMETRY, full_scale_counts=4095, progress=False)
+    assert scan_io.open_scan(tmp_path / "twelve.zarr")[1].attrs[scan_io.FULL_SCALE_ATTR] == 4095
+    with pytest.raises(scan_io.ScanError, match="full_scale_counts must be a positive"):
+        ingest_scan(tmp_path / "never.zarr", **sources, **GEOMETRY, full_scale_counts=0, progress=False)
+    assert not (tmp_path / "never.zarr").exists()

@@ -128,12 +128,14 @@ def repair_outliers(image, threshold_sigma: float | None = DEFAULT_OUTLIER_SIGMA
     return repaired, outliers
 
 
-def saturated_pixels(frame, corrected: bool = False):
-    """Raw integer counts at their type's full scale (65535 for uint16), which the detector
-    clipped: they read low, so PWF leaves them out of its fit (``bad_pixels``). None where
-    there are none, or for corrected or floating-point frames, whose full scale is unknown."""
+def saturated_pixels(frame, corrected: bool = False, full_scale: float | None = None):
+    """Raw counts at the detector's full scale, which it clipped: they read low, so PWF leaves
+    them out of its fit (``bad_pixels``). ``full_scale``: the scan's recorded full scale
+    (``detector_full_scale_counts``, e.g. 4095 for a 12-bit camera); else an integer frame's
+    type maximum (65535 for uint16). None where there are none, or for corrected frames and
+    floating-point frames of no recorded full scale."""
     a = np.asarray(frame)
-    if corrected or a.dtype.kind not in "ui":
+    if corrected or (full_scale is None and a.dtype.kind not in "ui"):
         return None
-    clipped = a >= np.iinfo(a.dtype).max
+    clipped = a >= (np.iinfo(a.dtype).max if full_scale is None else full_scale)
     return clipped if clipped.any() else None

@@ -48,10 +48,12 @@ MULTI_IMAGE = ("lcs", "umpa", "mist")
 
 def _read_corrected(g, name, index, flat, dark, corrected, with_saturated: bool = False):
     """One frame flat/dark-corrected; ``with_saturated``: and its saturated pixels
-    (:func:`saturated_pixels`) beside it."""
+    (:func:`saturated_pixels`, at the scan's recorded full scale if it has one) beside it."""
     frame = integrity.read_checked(integrity.store_root(g), g[name], name, index)
     image = scan_io.correct(frame, flat, dark, corrected)
-    return (image, saturated_pixels(frame, corrected)) if with_saturated else image
+    if not with_saturated:
+        return image
+    return image, saturated_pixels(frame, corrected, g.attrs.get(scan_io.FULL_SCALE_ATTR))
 
 
 #: scans whose saturated pixels this process has reported (one line each, not one per frame)

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from pwf_dask.progress import Progress
-from pwf_dask.stores.scan_io import ScanError, consolidate, correct, create_scan, create_variable
+from pwf_dask.stores.scan_io import FULL_SCALE_ATTR, ScanError, consolidate, correct, create_scan, create_variable
 
 #: The DXchange layout (tomopy, dxchange): the defaults for an HDF5 file given alone.
 DXCHANGE = {
@@ -253,6 +253,18 @@ def _open_sources(proj_specs: list[str], ref_specs: list[str], flat: str | None,
         raise
 
 
+def _full_scale_counts(sources: _Sources, given: float | None, flat_dark_corrected: bool) -> float | None:
+    """The raw counts at which the detector saturates: as given (checked before the sources
+    are opened), else the sources' common integer type maximum; None for corrected or
+    floating-point sources."""
+    if given is not None:
+        return float(given)
+    kinds = {np.dtype(s.dtype) for s in sources.opened}
+    if flat_dark_corrected or len(kinds) != 1 or next(iter(kinds)).kind not in "ui":
+        return None
+    return float(np.iinfo(next(iter(kinds))).max)
+
+
 def _scan_attrs(geometry, *, flat_dark_corrected: bool, coherence: tuple, specs: dict) -> dict:
     """The scan store's root attributes (docs/scan-format.md §1) and the ingest's sources."""
     attrs = {
@@ -358,6 +370,7 @@ def ingest_scan(
     coherence_length_y_m: float | None = None,
     flat_dark_corrected: bool = False,
     diffuser_upstream_m: float = 0.0,
+    full_scale_counts: float | None = None,
     progress: bool = True,
 ) -> str:
     """Write a docs/scan-format.md §1 scan store at ``out`` from TIFF/HDF5 frame sources; returns its path.
@@ -369,6 +382,9 @@ def ingest_scan(
     flat/dark correction), so a bad scan fails here with the frame named, and the partial
     store is removed. ``diffuser_upstream_m`` > 0 records a diffuser that far upstream of the
     sample (with ``sample_diffuser_distance_m`` = 0; not in docs/scan-format.md §1, read by PWF).
+    ``full_scale_counts``: the raw counts at which the detector saturates (4095 for a 12-bit
+    camera), recorded so that PWF leaves such pixels out of its fit; by default the sources'
+    integer type maximum (255 for uint8 frames, stored as float32), none for float sources.
     """
     from pwf_dask.physics.geometry import Geometry
     from pwf_dask.physics.optics import check_plausible_geometry
@@ -383,6 +399,8 @@ def ingest_scan(
         check_plausible_geometry(coherence_length_x_m=coherence_length_x_m, coherence_length_y_m=coherence_length_y_m)
     except ValueError as exc:
         raise ScanError(str(exc)) from None
+    if full_scale_counts is not None and not (np.isfinite(full_scale_counts) and full_scale_counts > 0):
+        raise ScanError(f"full_scale_counts must be a positive number of counts, got {full_scale_counts}")
     proj_specs = [projections] if isinstance(projections, str) else list(projections)
     ref_specs = [reference] if isinstance(reference, str) else list(reference)
     sources = _open_sources(proj_specs, ref_specs, flat, dark)
@@ -398,6 +416,9 @@ def ingest_scan(
         }
         coherence = (coherence_length_x_m, coherence_length_y_m)
         attrs = _scan_attrs(geometry, flat_dark_corrected=flat_dark_corrected, coherence=coherence, specs=specs)
+        full_scale = _full_scale_counts(sources, full_scale_counts, flat_dark_corrected)
+        if full_scale is not None:
+            attrs[FULL_SCALE_ATTR] = full_scale
     except BaseException:
         sources.close()
         raise

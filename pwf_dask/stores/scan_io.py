@@ -189,6 +189,11 @@ def _checked_arrays(ds, path: str) -> np.ndarray:
     return angles
 
 
+#: optional, not in docs/scan-format.md §1: the raw counts at which the detector saturates
+#: (e.g. 4095 for a 12-bit camera); without it an integer frame's type maximum is taken
+FULL_SCALE_ATTR = "detector_full_scale_counts"
+
+
 def _checked_optics(attrs: dict, path: str) -> tuple[dict, float, list]:
     """(the contract's geometry attributes, the upstream distance, the coherence lengths or
     None), each a plausible number (:class:`~pwf_dask.physics.geometry.Geometry`)."""
@@ -206,6 +211,8 @@ def _checked_optics(attrs: dict, path: str) -> tuple[dict, float, list]:
             coh.append(c)
         else:
             coh.append(None)
+    if FULL_SCALE_ATTR in attrs and not _attr_float(attrs, FULL_SCALE_ATTR, path) > 0:
+        raise ScanError(f"{path}: {FULL_SCALE_ATTR} must be > 0, got {attrs[FULL_SCALE_ATTR]}")
     try:
         upstream = Geometry(**vals, diffuser_upstream_m=upstream).diffuser_upstream_m
         check_plausible_geometry(coherence_length_x_m=coh[0], coherence_length_y_m=coh[1])
