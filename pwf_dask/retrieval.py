@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -22,6 +23,8 @@ from pwf_dask.physics.geometry import Geometry
 from pwf_dask.physics.materials import delta_beta
 from pwf_dask.physics.single_material import paganin_length_m, single_material_phase
 from pwf_dask.pwf import solver
+
+logger = logging.getLogger(__name__)
 
 METHODS = ("pwf", "umpa", "lcs", "gf", "mist")
 
@@ -592,6 +595,7 @@ def retrieve_projection(
         )
     xp = get_array_module(sample, reference)
     y, ref = _check_pair(sample, reference, xp)
+    background_mask = _checked_background_mask(background_mask, tuple(y.shape))
     geometry = Geometry(
         energy_eV, pixel_size_m, sample_diffuser_distance_m, diffuser_detector_distance_m, opts.diffuser_upstream_m
     )
@@ -676,6 +680,27 @@ def _checked_bad_pixels(bad_pixels, frame_shape: tuple[int, int], xp):
             f"bad_pixels must be a boolean map of the frame's shape {frame_shape}, got {bad.dtype} {bad.shape}"
         )
     return bad if bool(bad.any()) else None
+
+
+def _checked_background_mask(background_mask, frame_shape: tuple[int, int]):
+    """``background_mask`` as a boolean NumPy map of the frame's shape, or None; one line for
+    another shape, values other than True/False (or 1/0), or fewer sample-free pixels than a fitted surface needs."""
+    if background_mask is None:
+        return None
+    mask = to_numpy(background_mask)
+    binary = mask.dtype == bool or (mask.dtype.kind in "iuf" and bool(np.isin(mask, (0, 1)).all()))
+    if not binary or tuple(mask.shape) != tuple(frame_shape):
+        raise ValueError(
+            f"background_mask must be a boolean (or 0/1) map of the frame's shape {frame_shape}, "
+            f"got {mask.dtype} {mask.shape}"
+        )
+    mask = mask.astype(bool, copy=False)
+    if int(mask.sum()) < bg.MIN_BACKGROUND_PIXELS:
+        raise ValueError(
+            f"background_mask marks {int(mask.sum())} sample-free pixels; a background plane needs at least "
+            f"{bg.MIN_BACKGROUND_PIXELS}"
+        )
+    return mask
 
 
 def _check_pair(sample, reference, xp):
@@ -977,12 +1002,25 @@ def _phase_and_attenuation(solved: _Solved, single_material: bool, prior: dict, 
 def _zeroed_background(phase, attenuation, background_mask, unseen):
     """(background mask, phase, attenuation) with a plane fitted to the background pixels
     subtracted (:mod:`pwf_dask.physics.background`); the given mask, else the detected one."""
-    if background_mask is not None:
-        mask = np.asarray(to_numpy(background_mask), bool)
-    else:
-        mask = bg.detect_background(phase, attenuation)
-    fit = mask if unseen is None else mask & ~to_numpy(unseen)  # the strips' psi is the regularizer's guess
+    mask = background_mask if background_mask is not None else bg.detect_background(phase, attenuation)
+    fit = mask if unseen is None else _seen_background(mask, to_numpy(unseen))
     return mask, bg.zero_background(phase, fit), bg.zero_background(attenuation, fit)
+
+
+def _seen_background(mask: np.ndarray, unseen: np.ndarray) -> np.ndarray:
+    """The background pixels outside the strips the reference never saw (their values are
+    the regularizer's or an extrapolation's guess), or all of them where the strips would
+    leave too few to fit a plane."""
+    seen = mask & ~unseen
+    if int(seen.sum()) >= bg.MIN_BACKGROUND_PIXELS:
+        return seen
+    logger.warning(
+        "background: %d sample-free pixels outside the strips the drifted diffuser brought in; "
+        "the plane is fitted on all %d",
+        int(seen.sum()),
+        int(mask.sum()),
+    )
+    return mask
 
 
 def _parameters(
@@ -1086,6 +1124,7 @@ def retrieve_tracking(
 
     xp = get_array_module(sample, reference)
     s, r = _checked_tracking_frames(sample, reference, xp)
+    background_mask = _checked_background_mask(background_mask, tuple(s.shape[-2:]))
     check_diffuser_drift(diffuser_drift)
     s, s_outliers = repair_outliers(s, outlier_sigma)
     r, r_outliers = repair_outliers(r, outlier_sigma)
@@ -1214,9 +1253,5 @@ def _seen_window(unseen: np.ndarray) -> tuple[slice, slice]:
 def _tracking_background(phase, attenuation, background_mask, unseen) -> np.ndarray:
     """The given background mask, or the one detected, without the unseen strips (their
     values are extrapolated)."""
-    mask = (
-        np.asarray(to_numpy(background_mask), bool)
-        if background_mask is not None
-        else bg.detect_background(phase, attenuation)
-    )
-    return mask & ~unseen
+    mask = background_mask if background_mask is not None else bg.detect_background(phase, attenuation)
+    return _seen_background(mask, unseen)

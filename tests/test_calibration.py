@@ -217,6 +217,27 @@ def test_speckle_drift_measured_within_three_hundredths_of_a_pixel(drift):
     np.testing.assert_allclose(measured, drift, atol=0.03)
 
 
+def test_no_drift_is_read_from_frames_without_common_speckle(rng):
+    """Two frames of photon noise share no speckle: the correlation's largest value is the
+    noise's (at a lag of tens of pixels, which read as a drift, masked the whole background
+    and made a noise-dominated projection raise). Speckle frames stand far above it."""
+    from pwf_dask.calibration.drift import drift_peak_significance
+
+    for shape in ((128, 128), (96, 200)):
+        a, b = (rng.poisson(100.0, shape).astype(np.float32) for _ in range(2))
+        assert calibration.speckle_drift_px(a, b) == (0.0, 0.0)
+    sim = SpeckleSimulator(SpeckleSetup(shape=(128, 128)), seed=3)
+    reference = sim.reference()
+    sample = sim.noisy(sim.intensity(None, sim.diffuser((3.0, -2.0))))
+    np.testing.assert_allclose(calibration.speckle_drift_px(sample, reference), (3.0, -2.0), atol=0.05)
+    surface = np.zeros((64, 64), np.float32)
+    surface[0, 0] = 1.0
+    significance, threshold = drift_peak_significance(
+        surface + rng.normal(0, 0.01, (64, 64)), np.ones((64, 64)), (0, 0)
+    )
+    assert significance > 50 and 6 < threshold < 7
+
+
 def test_shift_transmission_is_a_roll_for_whole_pixels(rng):
     t = np.exp(1j * rng.normal(size=(48, 40))).astype(np.complex64)
     assert calibration.shift_transmission(t, (0.0, 0.0)) is t

@@ -676,3 +676,39 @@ def test_bad_pixels_are_refused_where_they_cannot_be_used():
         retrieve_projection(sim.sample, sim.reference, **kwargs(sim), bad_pixels=np.zeros((8, 8), bool))
     with pytest.raises(ValueError, match="only PWF leaves pixels out"):
         retrieve_projection(sim.sample, sim.reference, **kwargs(sim, method="lcs"), bad_pixels=sim.sample > 1)
+
+
+@pytest.mark.parametrize("method", ["pwf", "umpa"])
+def test_a_background_mask_that_cannot_fit_a_plane_is_refused_before_any_work(method):
+    """The mask's shape and its count were found only after the retrieval (a matmul error,
+    or "fewer than 6 pixels" after the whole solve); a 0/1 map is still taken."""
+    sim = simulate_projection(SpeckleSetup(shape=(32, 32), **FINE_DIFFUSER), seed=0)
+    few = np.zeros((32, 32), bool)
+    few[0, :3] = True
+    for mask, message in (
+        (np.ones((8, 8), bool), "boolean \\(or 0/1\\) map of the frame's shape"),
+        (np.full((32, 32), 0.5), "boolean \\(or 0/1\\) map"),
+        (few, "marks 3 sample-free pixels; a background plane needs at least 6"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            retrieve_projection(
+                sim.sample, sim.reference, **kwargs(sim, method=method), background_mask=mask, max_iter=1
+            )
+    taken = retrieve_projection(
+        sim.sample, sim.reference, **kwargs(sim, method=method), background_mask=np.ones((32, 32)), max_iter=2
+    )
+    assert taken.background.dtype == bool and taken.background.all()
+
+
+def test_the_background_plane_keeps_the_unseen_strips_only_where_nothing_else_is_left(caplog):
+    from pwf_dask.retrieval import _seen_background
+
+    mask = np.zeros((16, 16), bool)
+    mask[:, :4] = True
+    unseen = np.zeros((16, 16), bool)
+    unseen[:, :2] = True
+    np.testing.assert_array_equal(_seen_background(mask, unseen), mask & ~unseen)
+    unseen[:, :5] = True
+    with caplog.at_level("WARNING", logger="pwf_dask"):
+        np.testing.assert_array_equal(_seen_background(mask, unseen), mask)
+    assert "the plane is fitted on all 64" in caplog.text

@@ -13,6 +13,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+#: the fewest sample-free pixels a background surface is fitted on
+MIN_BACKGROUND_PIXELS = 6
+
 
 def _exponents(degree: int) -> list[tuple[int, int]]:
     """(i, j) of the surface's terms y^i x^j, constant first."""
@@ -104,6 +107,6 @@ def detect_background(
 
 def zero_background(image: np.ndarray, background: np.ndarray, degree: int = 1) -> np.ndarray:
     """``image`` minus the surface (plane by default) fitted over ``background`` pixels."""
-    if background.sum() < 6:
-        raise ValueError("background mask has fewer than 6 pixels: cannot fit a surface")
+    if background.sum() < MIN_BACKGROUND_PIXELS:
+        raise ValueError(f"background mask has fewer than {MIN_BACKGROUND_PIXELS} pixels: cannot fit a surface")
     return image - fit_surface(np.asarray(image, np.float64), background, degree)
