@@ -103,6 +103,29 @@ def test_unknown_coherence_method_is_refused():
         calibration.fit_coherence_lengths(np.ones((64, 64)), 1e-6, method="siegert")
 
 
+def test_an_unresolvable_blur_is_refused_saying_why(rng):
+    """The template fit reads the blur on the speckle spectrum's flank above the photon noise,
+    which it takes from the corners beyond the Nyquist circle. Speckle of a blur under a pixel
+    (1.2 / 2.9 um at 2.9 um pixels) fills those corners; frames of noise have no flank."""
+    setup = SpeckleSetup(
+        shape=(96, 96),
+        energy_eV=13_000,
+        pixel_size_m=2.9e-6,
+        sample_diffuser_distance_m=0.0,
+        diffuser_detector_distance_m=0.022,
+        coherence_length_x_m=1.2e-6,
+        coherence_length_y_m=2.9e-6,
+        photons=3e3,
+        diffuser_radius_median_m=1.8e-6,
+    )
+    geometry = dict(energy_eV=13_000, diffuser_detector_distance_m=0.022)
+    with pytest.raises(ValueError, match="reaches the Nyquist frequency, so its blur is under about a pixel"):
+        calibration.fit_coherence_lengths(SpeckleSimulator(setup, seed=0).reference(), 2.9e-6, **geometry)
+    noise = rng.poisson(100.0, (96, 96)).astype(np.float32)
+    with pytest.raises(ValueError, match="stand 3x above its photon noise, the fit needs 12"):
+        calibration.fit_coherence_lengths(noise, 0.65e-6, **geometry)
+
+
 def test_flat_reference_is_refused():
     with pytest.raises(ValueError, match="coherence"):
         calibration.coherence_lengths(np.ones((64, 64)), 1e-6)

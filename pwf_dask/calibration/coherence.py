@@ -99,6 +99,8 @@ SPECTRUM_TILE_PX = 128
 FIT_MIN_FREQUENCY = 0.06
 #: only frequencies where the spectrum stands this many times above the white noise floor
 FIT_MIN_SIGNAL_TO_NOISE = 3.0
+#: the fewest such frequencies a fit of (log A, x^2, y^2) is made on
+FIT_MIN_POINTS = 12
 #: median grain radii of the templates (0.5-16 um in steps of 2^(1/4)); searched on every
 #: second radius first, then on the two neighbours of the best
 TEMPLATE_RADII_M = tuple(0.5e-6 * 2 ** (k / 4) for k in range(21))
@@ -258,7 +260,7 @@ def _fit_iotf(spectrum, variance, noise: float, template):
         & (u >= 0)
         & (v >= 0)
     )
-    if use.sum() < 12:
+    if use.sum() < FIT_MIN_POINTS:
         return None
     signal = spectrum[use] - noise
     y = np.log(signal) - np.log(template[use])
@@ -357,7 +359,7 @@ def fit_coherence_lengths(
     best = min(fits, key=chi2)
     if fits[best] is None:
         raise ValueError(
-            "coherence-length fit failed: the reference shows no resolvable speckle blur above the noise; "
+            f"coherence-length fit failed: {_unresolved_blur_reason(spectrum, noise)}; "
             "give coherence_length_x_m and coherence_length_y_m explicitly"
         )
     x_px, y_px, best_chi2, points = fits[best]
@@ -369,6 +371,29 @@ def fit_coherence_lengths(
         grain_radius_m=best[1],
         chi2_per_point=best_chi2 / points,
         points=points,
+    )
+
+
+def _unresolved_blur_reason(spectrum: np.ndarray, noise: float) -> str:
+    """Why no IOTF could be fitted, in the user's terms: speckle up to the Nyquist frequency
+    (a blur under about a pixel: the corners the noise floor is read from hold speckle too),
+    or too few frequencies above the noise (speckle washed out, too few photons, or a frame
+    too small)."""
+    ty, tx = spectrum.shape
+    v, u = np.fft.fftfreq(ty)[:, None], np.fft.fftfreq(tx)[None, :]
+    q = np.hypot(u, v)
+    band = (q >= FIT_MIN_FREQUENCY) & (q < 0.5) & (u >= 0) & (v >= 0)  # the frequencies _fit_iotf reads
+    above = int(np.sum(band & (spectrum > FIT_MIN_SIGNAL_TO_NOISE * noise)))
+    if float(np.mean(spectrum[(q >= 0.4) & (q < 0.5)])) > 1.3 * noise:
+        return (
+            "the reference's speckle reaches the Nyquist frequency, so its blur is under about a pixel "
+            "and cannot be told from the photon noise"
+        )
+    return (
+        f"{above} of the reference's frequencies stand {FIT_MIN_SIGNAL_TO_NOISE:g}x above its photon noise, "
+        f"the fit needs {FIT_MIN_POINTS} "
+        f"(speckle washed out, too few photons, or a frame too small: "
+        f"{spectrum.shape[0]} x {spectrum.shape[1]} px tiles)"
     )
 
 
