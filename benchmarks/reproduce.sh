@@ -13,6 +13,7 @@
 #   calibration_dose.* ~25 min: coherence calibration (template, Gaussian) and PWF against dose
 #   calibration_sweep.* ~3 min: the template fit against the Gaussian over 80 diffusers and geometries
 #   geometry_sweep.*   ~2 min: PWF on other energies, pixels, coherence lengths and distances
+#   random_scenes.*    ~18 min: PWF (calibrated, true lengths) and UMPA K=1 on 80 random geometries
 #   frame_size.*       ~12 min: phase gain at 256^2-1024^2 and on wide 25 keV strips of PMMA rods
 #   frame_size_grits.* ~2 min: the 160 x 2220 strip on P1200 and P2000 sandpaper
 #   frame_size_camera.* ~11 min: the paper preset on the camera's whole 2160 x 2560 frame and row crops
@@ -43,12 +44,13 @@ case "${1:-all}" in
   frame-camera) "$(dirname "$PWF")/python" -m benchmarks.frame_size --scenes camera --out "$OUT" ;;
   edge-step) "$(dirname "$PWF")/python" -m benchmarks.edge_step --out "$OUT" ;;
   demo-dose) "$(dirname "$PWF")/python" -m benchmarks.demo_dose --out "$OUT" ;;
+  random-scenes) "$(dirname "$PWF")/python" -m benchmarks.random_scenes --out "$OUT" ;;
   fbp) "$PWF" bench fbp --out "$OUT" ;;
   perscan) "$PWF" bench perscan --out "$OUT" ;;
   fullwidth) "$PWF" bench fullwidth --out "$OUT" ;;
   field-grid) "$(dirname "$PWF")/python" -m benchmarks.field_grid --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-camera edge-step demo-dose fbp perscan field-grid paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-camera|edge-step|demo-dose|fbp|perscan|field-grid|paper-figures|fullwidth|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-camera edge-step demo-dose random-scenes fbp perscan field-grid paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-camera|edge-step|demo-dose|random-scenes|fbp|perscan|field-grid|paper-figures|fullwidth|all]" >&2; exit 2 ;;
 esac

@@ -79,3 +79,30 @@ def test_bench_perscan_quick_measures_each_part_against_one_retrieval(tmp_path):
         share = 100 * float(row[f"{part}_s"]) / float(row["retrieval_s"])
         assert float(row[f"{part}_pct"]) == pytest.approx(share, rel=1e-6)
     assert int(row["iterations"]) > 0
+
+
+def test_random_scenes_draw_every_parameter_inside_its_stated_range():
+    """The random-geometry study (benchmarks/random_scenes.py) is only as wide as its draws: 400
+    set-ups stay inside the ranges its report states, span most of each, and an upstream
+    diffuser always comes with L1 = 0."""
+    import numpy as np
+
+    from benchmarks.random_scenes import DRAW_SEED, draw_setup
+
+    setups = [draw_setup(np.random.default_rng(DRAW_SEED + i)) for i in range(400)]
+    ranges = {
+        "energy_eV": (8e3, 30e3),
+        "pixel_size_m": (0.3e-6, 3e-6),
+        "diffuser_detector_distance_m": (5e-3, 200e-3),
+        "coherence_length_x_m": (1e-6, 8e-6),
+        "photons": (1e2, 1e6),
+        "diffuser_radius_median_m": (0.8e-6, 6e-6),
+    }
+    for name, (lo, hi) in ranges.items():
+        values = np.array([getattr(s, name) for s in setups])
+        assert lo <= values.min() and values.max() <= hi, name
+        assert np.log(values.max() / values.min()) > 0.8 * np.log(hi / lo), name
+    assert all(64 <= n <= 259 for s in setups for n in s.shape)
+    upstream = [s for s in setups if s.diffuser_upstream_m > 0]
+    assert 60 < len(upstream) < 140 and all(s.sample_diffuser_distance_m == 0 for s in upstream)
+    assert {s.diffuser_grain_shape for s in setups} == {"spheres", "faceted", "mixed"}
