@@ -22,7 +22,8 @@ DRIFT_SIGNIFICANCE_MARGIN = 2.0
 
 
 def drift_peak_significance(raw_correlation, window_correlation, peak) -> tuple[float, float]:
-    """(significance, threshold) of the cross-correlation's peak at ``peak``.
+    """(significance, threshold) of the cross-correlation's peak at ``peak`` (both surfaces
+    on the correlation's device).
 
     The raw correlation's noise at lag d grows as the root of the tapers' overlap there, so
     raw / sqrt(overlap) is white where the frames do not correlate; the significance is the
@@ -33,7 +34,7 @@ def drift_peak_significance(raw_correlation, window_correlation, peak) -> tuple[
     paper's scene 42 at any dose), Poisson noise of 100 photons 3.9-4.0.
     """
     xp = get_array_module(raw_correlation)
-    score = raw_correlation / xp.asarray(np.sqrt(window_correlation), dtype=raw_correlation.dtype)
+    score = raw_correlation / xp.sqrt(window_correlation)
     sample = score[::2, ::2]  # a quarter of the lags gives the spread as well, 4x sooner
     median = float(xp.median(sample))
     sigma = 1.4826 * float(xp.median(xp.abs(sample - median))) or 1.0
@@ -90,9 +91,9 @@ def speckle_drift_px(sample, reference, *, fft: FFT | None = None) -> tuple[floa
     power_y, power_x = np.abs(np.fft.fft(wy)) ** 2, np.abs(np.fft.fft(wx)) ** 2
     window_correlation = np.outer(np.fft.ifft(power_y).real, np.fft.ifft(power_x).real)
     floor = 1e-3 * float(np.sum(wy**2) * np.sum(wx**2))
-    window_correlation = np.maximum(window_correlation, floor)
+    window_correlation = xp.asarray(np.maximum(window_correlation, floor), dtype=xp.float32)
     raw = fft.ifft2(cross).real
-    correlation = raw / xp.asarray(window_correlation, dtype=xp.float32)
+    correlation = raw / window_correlation
     peak = np.unravel_index(int(xp.argmax(correlation)), correlation.shape)
     significance, threshold = drift_peak_significance(raw, window_correlation, peak)
     if not significance >= threshold:
