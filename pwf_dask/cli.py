@@ -751,7 +751,9 @@ def _interrupted_message(args) -> str:
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"pwf-dask: warning: {message}", file=sys.stderr if file is None else file)
+    # a library's warning may run over several lines (xarray's advice lists): its first says what
+    first = str(message).strip().splitlines()[0] if str(message).strip() else category.__name__
+    print(f"pwf-dask: warning: {first}", file=sys.stderr if file is None else file)
 
 
 def main(argv: list[str] | None = None) -> int:

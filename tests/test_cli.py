@@ -313,3 +313,11 @@ def test_a_reconstruction_inside_the_scan_store_is_refused_and_fsc_names_a_scan_
     assert sorted(p.name for p in scan.iterdir()) == before
     assert cli.main(["fsc", str(scan)]) != 0
     assert "not a reconstruction store" in capsys.readouterr().err
+
+
+def test_a_librarys_warning_of_several_lines_is_printed_as_its_first_line():
+    import io
+
+    out = io.StringIO()
+    cli._one_line_warning(UserWarning("Failed to open the store.\nTo silence it:\n1. ..."), UserWarning, "f", 1, out)
+    assert out.getvalue() == "pwf-dask: warning: Failed to open the store.\n"

@@ -6,6 +6,7 @@ line with nothing written.
 
 import shutil
 import sys
+import warnings
 
 import cloudpickle
 import numpy as np
@@ -368,4 +369,68 @@ def test_a_damaged_scan_chunk_is_named_before_anything_is_computed(finished, tmp
     assert cli.main(["run", str(scan), str(tmp_path / "recon.zarr"), *RUN]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "projections chunk (0, 4, 0, 0)" in err[0], err
+    assert not (tmp_path / "recon.zarr").exists()
+
+
+def _foreign(src, dst, edit=None, **to_zarr):
+    """``src`` rewritten by xarray as another tool would: its own codecs (no checksums), and
+    zarr's defaults otherwise (a chunk equal to the fill value is not stored)."""
+    import xarray as xr
+
+    ds = xr.open_zarr(src).load().chunk({"position": 1, "angle": 1})
+    for v in ds.variables.values():
+        v.encoding = {}
+    if edit is not None:
+        edit(ds)
+    with zarr.config.set({"array.write_empty_chunks": False}), warnings.catch_warnings():
+        warnings.simplefilter("ignore", zarr.errors.ZarrUserWarning)  # consolidated metadata in v3
+        ds.to_zarr(dst, mode="w", **to_zarr)
+    return dst
+
+
+def _sharded_dot_keys(ds):
+    for v in ds.data_vars.values():
+        v.encoding = {"chunk_key_encoding": {"name": "default", "configuration": {"separator": "."}}}
+    ds["projections"].encoding["chunks"] = (1, 1, 16, 48)  # two chunks in each frame's shard
+    ds["projections"].encoding["shards"] = (1, 1, 32, 48)
+
+
+@pytest.mark.parametrize(
+    "edit,to_zarr",
+    [(None, {"zarr_format": 2, "consolidated": False}), (_sharded_dot_keys, {})],
+    ids=["zarr v2 unconsolidated", "v3 sharded with dot keys"],
+)
+def test_another_writers_scan_gives_the_same_reconstruction(finished, tmp_path, capsys, edit, to_zarr):
+    """The contract's scan as xarray writes it in other layouts reads as pwf-dask's own: the
+    chunk checks that catch a lost pwf-dask chunk do not apply to another writer's keys."""
+    scan = _foreign(finished[0], tmp_path / "foreign.zarr", edit, **to_zarr)
+    capsys.readouterr()
+    assert cli.main(["run", str(scan), str(tmp_path / "recon.zarr"), *RUN, "--figures", str(tmp_path / "f")]) == 0
+    assert "consolidated" not in capsys.readouterr().err
+    assert_same_store(finished[1], tmp_path / "recon.zarr")
+
+
+def test_a_zero_dark_frame_that_another_writer_left_out_reads_as_zeros(finished, tmp_path):
+    from pwf_dask.pipeline import workflow
+
+    def zero_dark(ds):
+        ds["dark"] = ds["dark"] * 0
+
+    scan = _foreign(finished[0], tmp_path / "foreign.zarr", zero_dark)
+    assert not (scan / "dark" / "c" / "0" / "0").exists()
+    ds, info = scan_io.open_scan(scan)
+    _, flat, dark, _ = workflow._scan_frames(scan)
+    np.testing.assert_array_equal(dark, 0)
+    assert info.has_dark and flat.shape == dark.shape
+
+
+def test_a_frame_missing_from_another_writers_scan_is_refused_in_one_line(finished, tmp_path, capsys):
+    """Zarr reads a chunk another writer does not hold as its fill value: a frame of one value,
+    refused by name rather than retrieved as a blank projection."""
+    scan = _foreign(finished[0], tmp_path / "foreign.zarr", zarr_format=2)
+    (scan / "projections" / "1.3.0.0").unlink()
+    capsys.readouterr()
+    assert cli.main(["run", str(scan), str(tmp_path / "recon.zarr"), *RUN]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "position 1, angle 3" in err[0] and "one value in every pixel" in err[0], err
     assert not (tmp_path / "recon.zarr").exists()

@@ -15,8 +15,10 @@ A reconstruction store is trusted chunk by chunk, never as a whole:
 * :func:`scan_fingerprint` digests what makes a scan that scan (shapes, angles, geometry,
   reference, flat and dark), so a resume against another scan is refused.
 
-Stores are directories on a (shared) filesystem: chunk keys are the zarr v3 default
-``NAME/c/i/j/...``.
+Stores are directories on a (shared) filesystem: pwf-dask's chunk keys are the zarr v3 default
+``NAME/c/i/j/...``. A scan written by another tool (zarr v2, other key encodings, sharding,
+chunks left out where they equal the fill value) is read as zarr reads it: only pwf-dask's
+own, checksummed arrays must hold every chunk (:func:`stores_every_chunk`).
 """
 
 from __future__ import annotations
@@ -53,7 +55,11 @@ class DamagedChunk(RuntimeError):
         super().__init__(f"{store}: {name} chunk {self.index} is {problem}")
 
 
-def chunk_path(store: str | Path, name: str, index: tuple[int, ...]) -> Path:
+def chunk_path(store: str | Path, name: str, index: tuple[int, ...], arr=None) -> Path:
+    """The file of chunk ``index``: the zarr v3 default key of pwf-dask's arrays, or ``arr``'s
+    own key encoding where it is given (zarr v2's ``i.j``, a v3 array with ``.`` separators)."""
+    if arr is not None:
+        return Path(store, name, arr.metadata.encode_chunk_key(tuple(int(i) for i in index)))
     return Path(store, name, "c", *(str(int(i)) for i in index))
 
 
@@ -65,9 +71,16 @@ def has_checksums(arr) -> bool:
     return False
 
 
+def stores_every_chunk(arr) -> bool:
+    """Whether a missing chunk of ``arr`` is a lost one: pwf-dask writes every chunk of its
+    (checksummed) arrays; another writer may leave out a chunk equal to the fill value, which
+    zarr then reads as that value."""
+    return has_checksums(arr)
+
+
 def read_chunk(store: str | Path, arr, name: str, index: tuple[int, ...]) -> np.ndarray:
     """One chunk, decoded and verified; raises :class:`DamagedChunk` naming it."""
-    if not chunk_path(store, name, index).exists():
+    if stores_every_chunk(arr) and not chunk_path(store, name, index, arr).exists():
         raise DamagedChunk(str(store), name, index, "missing")
     try:
         return np.asarray(arr.blocks[tuple(index)])
@@ -104,8 +117,8 @@ def read_checked(store: str | Path, arr, name: str, selection=...) -> np.ndarray
     """``arr[selection]``, refusing to read a missing chunk as its fill value or a damaged one
     as data: raises :class:`DamagedChunk` naming the first such chunk of the selection."""
     chunks = list(selected_chunks(arr, selection))
-    for index in chunks:
-        if not chunk_path(store, name, index).exists():
+    for index in chunks if stores_every_chunk(arr) else ():
+        if not chunk_path(store, name, index, arr).exists():
             raise DamagedChunk(str(store), name, index, "missing")
     try:
         return arr[selection]
@@ -325,7 +338,7 @@ class Verification:
 def _expected(arr, name: str, index: tuple[int, ...], done: dict) -> bool:
     """Whether a chunk must exist. Only pwf-dask's own (checksummed) arrays store every chunk;
     another writer may leave out a chunk equal to the fill value."""
-    if name in _OPTIONAL or not has_checksums(arr):
+    if name in _OPTIONAL or not stores_every_chunk(arr):
         return False
     if name in _DONE_BY:
         book, key, threshold = _DONE_BY[name]
@@ -356,7 +369,7 @@ def verify_store(path: str | Path, repair: bool = False) -> Verification:
             report.unchecksummed.append(name)
         report.checked[name] = 0
         for index in chunk_grid(arr):
-            exists = chunk_path(path, name, index).exists()
+            exists = chunk_path(path, name, index, arr).exists()
             if not exists and not _expected(arr, name, index, done):
                 continue
             report.checked[name] += 1

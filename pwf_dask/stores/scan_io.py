@@ -16,6 +16,7 @@ the stages that follow:
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -127,7 +128,10 @@ def open_scan(path: str | Path, check_values: bool = True):
         raise ScanError(f"{path}: no such scan store")
     _check_layout(path)
     try:
-        ds = xr.open_zarr(path, consolidated=None)
+        with warnings.catch_warnings():
+            # a store without consolidated metadata (another writer's) is read as it is
+            warnings.filterwarnings("ignore", message="Failed to open Zarr store with consolidated metadata")
+            ds = xr.open_zarr(path, consolidated=None)
     except Exception as exc:  # zarr/xarray raise many types for a broken store
         raise ScanError(f"{path}: not a readable Zarr dataset ({type(exc).__name__}: {exc})") from None
     npos, nang, ny, nx = ds["projections"].shape
@@ -252,25 +256,26 @@ def _check_chunks_exist(path: str) -> None:
 
     g = zarr.open_group(path, mode="r")
     for name in ("flat", "dark", "reference", "projections"):
-        if name in g and integrity.has_checksums(g[name]):
+        if name in g and integrity.stores_every_chunk(g[name]):
             for index in integrity.chunk_grid(g[name]):
-                if not integrity.chunk_path(path, name, index).exists():
+                if not integrity.chunk_path(path, name, index, g[name]).exists():
                     raise ScanError(f"{path}: {name} chunk {index} is missing; restore or re-ingest that frame")
 
 
 def _check_values(ds, info: ScanInfo) -> None:
-    """Every frame finite and non-negative after flat/dark correction, read once, chunk by chunk.
+    """Every frame holds more than one value, and is finite and non-negative after flat/dark
+    correction; read once, chunk by chunk.
 
     The arrays are xarray's lazy ones: NumPy's reductions dispatch to them, and one
-    ``Dataset.compute`` reads each chunk once for both checks."""
-    import warnings
+    ``Dataset.compute`` reads each chunk once for all checks."""
 
     import xarray as xr
 
     flat = ds["flat"].data if info.has_flat else None
     dark = ds["dark"].data if info.has_dark else None
     for name in ("reference", "projections"):
-        cor = ds[name].data.astype(np.float32)
+        raw = ds[name].data
+        cor = raw.astype(np.float32)
         if not info.flat_dark_corrected:
             if dark is not None:
                 cor = cor - dark.astype(np.float32)
@@ -283,18 +288,24 @@ def _check_values(ds, info: ScanInfo) -> None:
             warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN frame: named below
             checks = xr.Dataset(
                 {
+                    "blank": (frames, (raw == raw[..., :1, :1]).all(axis=(-2, -1))),
                     "finite": (frames, np.isfinite(cor).all(axis=(-2, -1))),
                     "minimum": (frames, np.nanmin(cor, axis=(-2, -1))),
                 }
             ).compute(scheduler="threads")
-        finite, minimum = checks["finite"].values, checks["minimum"].values
-        for bad, what in ((~finite, "non-finite values (NaN or inf)"), (minimum < 0, "negative values")):
+        for bad, what in (
+            # no speckle: an empty exposure, or a chunk that another writer left out (zarr
+            # reads it as the fill value)
+            (checks["blank"].values, "one value in every pixel (a blank frame, or a chunk not in the store)"),
+            (~checks["finite"].values, "non-finite values (NaN or inf) after flat/dark correction"),
+            (checks["minimum"].values < 0, "negative values after flat/dark correction"),
+        ):
             if bad.any():
                 where = np.argwhere(bad)[0]
                 frame = f"position {where[0]}" + (
                     f", angle {where[1]} ({float(info.angles_deg[where[1]]):g} deg)" if name == "projections" else ""
                 )
-                raise ScanError(f"{info.path}: {name} at {frame} has {what} after flat/dark correction")
+                raise ScanError(f"{info.path}: {name} at {frame} has {what}")
 
 
 def row_block(ny: int, nx: int) -> int:
@@ -482,8 +493,6 @@ def _build_reconstruction(path: str, info: ScanInfo, params: dict) -> None:
 
 def consolidate(path: str | Path) -> None:
     """Consolidate metadata so ``xarray.open_zarr`` opens the store in one read."""
-    import warnings
-
     import zarr
 
     with warnings.catch_warnings():
