@@ -106,17 +106,27 @@ def _check_real(name: str, a) -> None:
         raise ValueError(f"{name} must hold real intensities, got dtype {a.dtype}")
 
 
+def _unmasked(name: str, a):
+    """``a``, refused where it is a masked array with masked pixels: ``asarray`` would drop the
+    mask and the masked pixels would be fitted as measured."""
+    if isinstance(a, np.ma.MaskedArray) and np.ma.is_masked(a):
+        hint = "its filled data and, for PWF, the mask as bad_pixels" if name == "sample" else "unmasked frames"
+        raise ValueError(f"{name} is a masked array: pass {hint}")
+    return a
+
+
 def _check_image(name: str, a, xp) -> Any:
     if a is None:
         raise ValueError(f"{name} is missing")
-    a = xp.asarray(a)
+    a = xp.asarray(_unmasked(name, a))
     _check_real(name, a)
     if a.ndim != 2:
         raise ValueError(f"{name} must be a 2-D image, got {a.ndim} dimensions")
     if min(a.shape) < 16:
         raise ValueError(f"{name} is {a.shape}: at least 16 x 16 pixels are needed")
     if not bool(xp.all(xp.isfinite(a))):
-        raise ValueError(f"{name} has non-finite values (NaN or inf)")
+        hint = ": fill them, and for PWF pass them as bad_pixels (left out of the fit)" if name == "sample" else ""
+        raise ValueError(f"{name} has non-finite values (NaN or inf){hint}")
     if bool(xp.any(a < 0)):
         raise ValueError(f"{name} has negative values: pass flat/dark-corrected intensities")
     return a
@@ -1213,7 +1223,7 @@ def _checked_tracking_frames(sample, reference, xp):
     """Both stacks as float64, refused in one line where their shapes differ or a value is
     non-finite or negative."""
     for name, a in (("sample", sample), ("reference", reference)):
-        _check_real(name, xp.asarray(a))
+        _check_real(name, xp.asarray(_unmasked(name, a)))
     s = xp.asarray(sample, dtype=xp.float64)
     r = xp.asarray(reference, dtype=xp.float64)
     if s.shape != r.shape or s.ndim not in (2, 3):

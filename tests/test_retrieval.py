@@ -284,7 +284,9 @@ def test_a_known_upstream_distance_lowers_the_error(seed):
         (dict(sample=np.ones((40, 40))), "differ in shape"),
         (dict(diffuser_upstream_m=5e-3, sample_diffuser_distance_m=3e-3), "needs sample_diffuser_distance_m = 0"),
         (dict(diffuser_upstream_m=-1e-3), "diffuser_upstream_m must be >= 0"),
-        (dict(sample=np.full((64, 64), np.nan)), "non-finite"),
+        (dict(sample=np.full((64, 64), np.nan)), "non-finite values .NaN or inf.: fill them, and for PWF pass"),
+        (dict(sample=np.ma.masked_less(np.ones((64, 64)), 2)), "masked array: pass its filled data"),
+        (dict(reference=np.ma.masked_less(np.ones((64, 64)), 2), method="umpa"), "reference is a masked array"),
         (dict(reference=-np.ones((64, 64))), "negative"),
         (dict(sample=np.ones((64, 64), complex)), "real intensities"),  # its imaginary part was dropped
         (dict(reference=np.ones((64, 64), bool)), "real intensities"),
