@@ -45,12 +45,13 @@ case "${1:-all}" in
   edge-step) "$(dirname "$PWF")/python" -m benchmarks.edge_step --out "$OUT" ;;
   demo-dose) "$(dirname "$PWF")/python" -m benchmarks.demo_dose --out "$OUT" ;;
   random-scenes) "$(dirname "$PWF")/python" -m benchmarks.random_scenes --out "$OUT" ;;
+  diffuser-models) "$(dirname "$PWF")/python" -m benchmarks.diffuser_models --out "$OUT" ;;
   fbp) "$PWF" bench fbp --out "$OUT" ;;
   perscan) "$PWF" bench perscan --out "$OUT" ;;
   fullwidth) "$PWF" bench fullwidth --out "$OUT" ;;
   field-grid) "$(dirname "$PWF")/python" -m benchmarks.field_grid --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-camera edge-step demo-dose random-scenes fbp perscan field-grid paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-camera|edge-step|demo-dose|random-scenes|fbp|perscan|field-grid|paper-figures|fullwidth|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-camera edge-step demo-dose random-scenes diffuser-models fbp perscan field-grid paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-camera|edge-step|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|paper-figures|fullwidth|all]" >&2; exit 2 ;;
 esac
