@@ -158,7 +158,8 @@ def _tiff_scan(tmp_path, ds, n_angles=None, low_frame=False):
         ("negative", "projection 3 of position 0"),
         ("no_angles", "either a start and stop or a file"),
         ("no_source", "give --projections and --reference"),
-        ("flat_at_dark", "not above the dark"),
+        ("flat_at_dark", "pixels are not above the dark (flat - dark <= 0), the first at row 0, column 0"),
+        ("dead_pixel", "flat: 1 pixel is not above the dark (flat - dark <= 0), the first at row 5, column 7"),
         ("upstream_with_l1", "needs sample_diffuser_distance_m = 0"),
         ("energy_in_kev", "energy_eV = 10 is outside"),
         ("pixel_in_um", "pixel_size_m = 0.65 is outside"),
@@ -181,8 +182,12 @@ def test_bad_input_is_refused_in_one_line_and_writes_nothing(source_scan, tmp_pa
         angles = []
     elif case == "no_source":
         src = []
-    elif case == "flat_at_dark":
-        tifffile.imwrite(tmp_path / "flat.tif", ds["dark"].values)
+    elif case in ("flat_at_dark", "dead_pixel"):
+        flat = ds["dark"].values.copy()
+        if case == "dead_pixel":  # one pixel that does not respond to the beam
+            flat = ds["flat"].values.copy()
+            flat[5, 7] = ds["dark"].values[5, 7]
+        tifffile.imwrite(tmp_path / "flat.tif", flat)
         src += ["--flat", str(tmp_path / "flat.tif")]
     elif case == "upstream_with_l1":  # GEOMETRY_ARGS has L1 = 3 mm
         src += ["--diffuser-upstream-m", "5e-3"]

@@ -322,12 +322,15 @@ def _frame_storage(sources: _Sources, flat_dark_corrected: bool) -> _FrameStorag
     storage = _FrameStorage(integer, flat_dark_corrected)
     storage.flat = storage.stored(sources.flat.mean()) if sources.flat else None
     storage.dark = storage.stored(sources.dark.mean()) if sources.dark else None
-    if (
-        storage.flat is not None
-        and storage.dark is not None
-        and np.any(storage.flat.astype(np.float32) <= storage.dark)
-    ):
-        raise ScanError("flat: some pixels are not above the dark (flat - dark <= 0)")
+    if storage.flat is not None and storage.dark is not None:
+        dead = storage.flat.astype(np.float32) <= storage.dark
+        if dead.any():
+            (row, col), n = np.argwhere(dead)[0], int(dead.sum())
+            raise ScanError(
+                f"flat: {n} pixel{'s are' if n > 1 else ' is'} not above the dark (flat - dark <= 0), the first at "
+                f"row {row}, column {col}: their corrected intensity would be infinite; check that --flat and --dark "
+                "are not swapped, or replace those pixels"
+            )
     return storage
 
 
