@@ -329,7 +329,8 @@ class Verification:
         out = [f"{self.path}: {sum(self.checked.values())} chunks of {len(self.checked)} arrays read"]
         out += [f"  {f.name} chunk {f.index}: {f.problem}" for f in self.faults]
         if self.unchecksummed:
-            out.append(f"  no checksums (a store made before issue #29): {', '.join(self.unchecksummed)}")
+            names = ", ".join(self.unchecksummed)
+            out.append(f"  no checksums (written by another tool, or by pwf-dask before issue #29): {names}")
         out += [f"  repaired: {r}" for r in self.repaired]
         out.append("  intact" if self.ok else f"  {len(self.faults)} damaged or missing chunks")
         return out
