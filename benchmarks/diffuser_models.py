@@ -11,9 +11,11 @@ Two candidate rules are scored against ``"auto"``: taking the other model where 
 residual is under half of the chosen model's, and the same decided by a probe of
 ``--probe-iter`` iterations of each model (what a retrieval could afford before its solve).
 
-    python -m benchmarks.diffuser_models [--scenes 80] [--probe-iter 40] [--out benchmarks/results]
+    python -m benchmarks.diffuser_models [--scenes 80] [--probe-iter 40] [--calibrated] [--out benchmarks/results]
 
-Writes ``diffuser_models.md`` and ``.csv`` (about 35 min for 80 scenes on 2 cores).
+Writes ``diffuser_models.md`` and ``.csv`` (about 25 min for 80 scenes on 2 cores); with
+``--calibrated`` each retrieval calibrates its coherence lengths from the reference, as a
+user's run does, into ``diffuser_models_calibrated.md`` and ``.csv``.
 """
 
 from __future__ import annotations
@@ -24,29 +26,24 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.random_scenes import DRAW_SEED, draw_setup
+from benchmarks.random_scenes import draw_scene
 from benchmarks.reporting import device_name, write_rows_csv
 from benchmarks.stability import PHASE_ERROR_THRESHOLD, errors
 from pwf_dask.options import DEFAULTS
 from pwf_dask.retrieval import chosen_diffuser_model, retrieve_projection
-from pwf_dask.simulation import simulate_projection
 
 MODELS = ("zero-phase", "single-material")
 #: the rule scored: the other model where its data residual is under this fraction of auto's
 SWITCH_RATIO = 0.5
 
 
-def scene_row(i: int, probe_iter: int) -> dict:
-    """Scene ``i`` of :mod:`benchmarks.random_scenes` with each model: error, gain, residual."""
-    setup = draw_setup(np.random.default_rng(DRAW_SEED + i))
-    sim = simulate_projection(setup, seed=i)
-    background = np.abs(sim.phase) < 1e-3 * np.abs(sim.phase).max()
-    options = dict(
-        **sim.geometry(),
-        background_mask=background,
-        coherence_length_x_m=setup.coherence_length_x_m,
-        coherence_length_y_m=setup.coherence_length_y_m,
-    )
+def scene_row(i: int, probe_iter: int, calibrated: bool = False) -> dict:
+    """Scene ``i`` of :mod:`benchmarks.random_scenes` with each model: error, gain, residual;
+    given the true coherence lengths, or ``calibrated`` from the reference as a user's run is."""
+    setup, sim, background = draw_scene(i)
+    options = dict(**sim.geometry(), background_mask=background)
+    if not calibrated:
+        options.update(coherence_length_x_m=setup.coherence_length_x_m, coherence_length_y_m=setup.coherence_length_y_m)
     if setup.diffuser_upstream_m:
         options["diffuser_upstream_m"] = setup.diffuser_upstream_m
     auto = chosen_diffuser_model("auto", DEFAULTS.diffuser_material, None, setup.energy_eV)[0]
@@ -95,7 +92,7 @@ def _summary(name: str, errs: list[float], switched: int | str = "") -> str:
     return f"| {name} | {held} | {np.median(e):.3f} | {np.mean(e):.3f} | {switched} |"
 
 
-def write_report(rows: list[dict], out_dir: str | Path, device: str, probe_iter: int) -> None:
+def write_report(rows: list[dict], out_dir: str | Path, device: str, probe_iter: int, name: str) -> None:
     zp = [r["zp_error"] for r in rows]
     sm = [r["sm_error"] for r in rows]
     auto = [r["zp_error"] if r["auto"] == "zero-phase" else r["sm_error"] for r in rows]
@@ -105,8 +102,10 @@ def write_report(rows: list[dict], out_dir: str | Path, device: str, probe_iter:
         f"# Diffuser models on {len(rows)} random geometries ({device})",
         "",
         "`python -m benchmarks.diffuser_models`: the scenes of `benchmarks.random_scenes` (same draws and",
-        "seeds), each retrieved with the zero-phase estimate and with the single-material fit, true",
-        f"coherence lengths. A model holds below a phase error of {PHASE_ERROR_THRESHOLD}.",
+        "seeds), each retrieved with the zero-phase estimate and with the single-material fit, "
+        + ("coherence lengths calibrated from each reference (`--calibrated`)." if "calibrated" in name else "true")
+        + ("" if "calibrated" in name else "\ncoherence lengths.")
+        + f" A model holds below a phase error of {PHASE_ERROR_THRESHOLD}.",
         f'`"auto"` takes the single-material fit in {sum(r["auto"] != "zero-phase" for r in rows)} scenes.',
         "",
         "| choice | holds | median error | mean error | scenes switched from auto |",
@@ -145,7 +144,7 @@ def write_report(rows: list[dict], out_dir: str | Path, device: str, probe_iter:
             f"{r[f'{other}_probe_residual'] / r[f'{mine}_probe_residual']:.2f} | "
             f"{'yes' if fs else 'no'} / {'yes' if ps else 'no'} |"
         )
-    Path(out_dir, "diffuser_models.md").write_text("\n".join(lines) + "\n")
+    Path(out_dir, f"{name}.md").write_text("\n".join(lines) + "\n")
 
 
 def main(argv=None) -> list[dict]:
@@ -153,14 +152,16 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--scenes", type=int, default=80)
     ap.add_argument("--probe-iter", type=int, default=40)
     ap.add_argument("--out", default="benchmarks/results")
+    ap.add_argument("--calibrated", action="store_true", help="coherence lengths calibrated, not given")
     args = ap.parse_args(argv)
+    name = "diffuser_models_calibrated" if args.calibrated else "diffuser_models"
     rows = []
     for i in range(args.scenes):
-        rows.append(scene_row(i, args.probe_iter))
+        rows.append(scene_row(i, args.probe_iter, args.calibrated))
         r = rows[-1]
         print(f"scene {i}: auto {r['auto']}, zero phase {r['zp_error']:.3f}, single {r['sm_error']:.3f}", flush=True)
-    out = write_rows_csv(args.out, "diffuser_models.csv", rows)
-    write_report(rows, out, device_name(np), args.probe_iter)
+    out = write_rows_csv(args.out, f"{name}.csv", rows)
+    write_report(rows, out, device_name(np), args.probe_iter, name)
     return rows
 
 

@@ -78,11 +78,16 @@ def _method_options(method: str, setup: SpeckleSetup) -> dict:
     return opts
 
 
-def scene_row(i: int, methods: tuple[str, ...] = METHODS) -> list[dict]:
-    """The rows of scene ``i``: one per method."""
+def draw_scene(i: int):
+    """Scene ``i``: its set-up, its simulated projection and the true sample-free pixels."""
     setup = draw_setup(np.random.default_rng(DRAW_SEED + i))
     sim = simulate_projection(setup, seed=i)
-    background = np.abs(sim.phase) < 1e-3 * np.abs(sim.phase).max()
+    return setup, sim, np.abs(sim.phase) < 1e-3 * np.abs(sim.phase).max()
+
+
+def scene_row(i: int, methods: tuple[str, ...] = METHODS) -> list[dict]:
+    """The rows of scene ``i``: one per method."""
+    setup, sim, background = draw_scene(i)
     wavelength = optics.wavelength_m(setup.energy_eV)
     scene = {
         "scene": i,
