@@ -58,11 +58,15 @@ def scene_row(i: int, probe_iter: int, calibrated: bool = False) -> dict:
         "photons": setup.photons,
         "visibility": float(sim.reference.std() / sim.reference.mean()),
         "auto": auto,
+        "refused": "",
     }
     for model in MODELS:
         key = "zp" if model == "zero-phase" else "sm"
         t0 = time.perf_counter()
-        res = retrieve_projection(sim.sample, sim.reference, **options, diffuser_model=model)
+        try:
+            res = retrieve_projection(sim.sample, sim.reference, **options, diffuser_model=model)
+        except ValueError as exc:  # the calibration's refusal (--calibrated): both models alike
+            return {**row, "refused": str(exc).split(";")[0]}
         err = errors(res.phase, res.attenuation, sim.phase, sim.attenuation, background)
         row[f"{key}_error"] = err["phase_error"]
         row[f"{key}_gain"] = err["phase_gain"]
@@ -93,6 +97,8 @@ def _summary(name: str, errs: list[float], switched: int | str = "") -> str:
 
 
 def write_report(rows: list[dict], out_dir: str | Path, device: str, probe_iter: int, name: str) -> None:
+    refused = [r for r in rows if r["refused"]]
+    rows = [r for r in rows if not r["refused"]]
     zp = [r["zp_error"] for r in rows]
     sm = [r["sm_error"] for r in rows]
     auto = [r["zp_error"] if r["auto"] == "zero-phase" else r["sm_error"] for r in rows]
@@ -106,7 +112,8 @@ def write_report(rows: list[dict], out_dir: str | Path, device: str, probe_iter:
         + ("coherence lengths calibrated from each reference (`--calibrated`)." if "calibrated" in name else "true")
         + ("" if "calibrated" in name else "\ncoherence lengths.")
         + f" A model holds below a phase error of {PHASE_ERROR_THRESHOLD}.",
-        f'`"auto"` takes the single-material fit in {sum(r["auto"] != "zero-phase" for r in rows)} scenes.',
+        f'`"auto"` takes the single-material fit in {sum(r["auto"] != "zero-phase" for r in rows)} scenes.'
+        + (f" The calibration refused {len(refused)} scenes (left out)." if refused else ""),
         "",
         "| choice | holds | median error | mean error | scenes switched from auto |",
         "|---|---:|---:|---:|---:|",
@@ -159,8 +166,9 @@ def main(argv=None) -> list[dict]:
     for i in range(args.scenes):
         rows.append(scene_row(i, args.probe_iter, args.calibrated))
         r = rows[-1]
-        print(f"scene {i}: auto {r['auto']}, zero phase {r['zp_error']:.3f}, single {r['sm_error']:.3f}", flush=True)
-    out = write_rows_csv(args.out, f"{name}.csv", rows)
+        done = r["refused"] or f"auto {r['auto']}, zero phase {r['zp_error']:.3f}, single {r['sm_error']:.3f}"
+        print(f"scene {i}: {done}", flush=True)
+    out = write_rows_csv(args.out, f"{name}.csv", [r for r in rows if not r["refused"]])
     write_report(rows, out, device_name(np), args.probe_iter, name)
     return rows
 
