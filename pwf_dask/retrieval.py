@@ -340,6 +340,50 @@ def estimate_diffuser(
     )
 
 
+def choose_diffuser(
+    sample,
+    reference,
+    *,
+    energy_eV: float,
+    pixel_size_m: float,
+    sample_diffuser_distance_m: float,
+    diffuser_detector_distance_m: float,
+    options: RetrievalOptions | None = None,
+    bad_pixels=None,
+    **keywords,
+) -> DiffuserChoice:
+    """The diffuser model and t_r that :func:`retrieve_projection` would take on this pair with
+    these options, ``"auto"``'s probe included (:func:`probes_diffuser`): a scan chooses once
+    per diffuser position and passes ``diffuser=choice.transmission`` with
+    ``diffuser_model=choice.model`` to every projection of it.
+
+    Parameters
+    ----------
+    sample, reference
+        One flat/dark-corrected projection and its reference, as :func:`retrieve_projection`
+        takes them.
+    energy_eV, pixel_size_m, sample_diffuser_distance_m, diffuser_detector_distance_m
+        The geometry.
+    options, bad_pixels, **keywords
+        As :func:`retrieve_projection`'s.
+
+    Returns
+    -------
+    DiffuserChoice
+        The model, t_r where the reference was taken (not moved by a drift), kappa, and each
+        model's probe residual in % ({} where nothing was probed).
+    """
+    opts = RetrievalOptions.from_keywords(options, **keywords)
+    geometry = Geometry(
+        energy_eV, pixel_size_m, sample_diffuser_distance_m, diffuser_detector_distance_m, opts.diffuser_upstream_m
+    )
+    pair, opts, _, kappa = _prepared_pair(sample, reference, opts, geometry, bad_pixels)
+    t = _transmission(pair.ref, None, opts, geometry, pair.coherence, pair.y.shape, pair.fft)
+    if probes_diffuser(pair.requested, opts.diffuser_model):
+        return _probed_diffuser(t, pair, opts, geometry)
+    return DiffuserChoice(opts.diffuser_model, t, kappa, {})
+
+
 def sample_delta_over_beta_of(material: str, delta_over_beta: float | None, energy_eV: float) -> float:
     """The one delta/beta MIST and PWF's ``single_material`` assume: the given value, else the
     material's at the energy."""
@@ -566,8 +610,12 @@ def retrieve_projection(
     energy (xraydb) in ``diffuser_refine_iter`` L-BFGS iterations; ``"zero-phase"`` is the
     paper's estimate; ``"auto"`` (default) takes the single material where the diffuser's
     linear attenuation coefficient reaches :data:`pwf_dask.calibration.AUTO_MIN_ATTENUATION_PER_M`
-    (5 /mm: silicon carbide up to ~11 keV), else zero phase, and records the choice
-    (``parameters["diffuser_model"]``, beside ``"diffuser_model_requested"``).
+    (5 /mm: silicon carbide up to ~11 keV), else zero phase unless a probe of
+    :data:`DIFFUSER_PROBE_ITER` iterations of each model on this sample leaves the single
+    material under :data:`DIFFUSER_PROBE_RATIO` of zero phase's data residual
+    (``parameters["diffuser_probe_residual_pct"]``; :func:`choose_diffuser` makes the choice
+    once for many projections), and records the choice (``parameters["diffuser_model"]``,
+    beside ``"diffuser_model_requested"``). A ``diffuser`` given is used as given, unprobed.
     With ``diffuser_upstream_m`` t_r is the fitted diffuser's field at the
     sample plane (:func:`pwf_dask.calibration.diffuser_transmission`).
 
@@ -603,37 +651,22 @@ def retrieve_projection(
         return _retrieve_by_tracking(
             sample, reference, opts, energy_eV, pixel_size_m, diffuser_detector_distance_m, background_mask
         )
-    xp = get_array_module(sample, reference)
-    y, ref = _check_pair(sample, reference, xp)
-    background_mask = _checked_background_mask(background_mask, tuple(y.shape))
     geometry = Geometry(
         energy_eV, pixel_size_m, sample_diffuser_distance_m, diffuser_detector_distance_m, opts.diffuser_upstream_m
     )
-    requested = opts.diffuser_model
-    opts, prior, kappa = _checked_pwf_options(opts, y.shape, geometry)
-    # spikes: the reference is repaired (the diffuser estimate needs every pixel), the
-    # sample's are left out of the data term (and repaired for the statistics that read it)
-    ref, ref_outliers = repair_outliers(ref, opts.outlier_sigma)
-    y, outliers = repair_outliers(y, opts.outlier_sigma)
-    n_outliers = int(outliers.sum())
-    bad = _checked_bad_pixels(bad_pixels, y.shape, xp)
-    coherence = _coherence(ref, geometry, opts)
-    opts = _resolved_grids(opts, geometry, coherence)
-    fft = FFT.for_module(xp, opts.fft_workers)
-    scale = float(xp.mean(ref))
-    if not scale > 0:
-        raise ValueError("reference has zero mean intensity")
+    pair, opts, prior, kappa = _prepared_pair(sample, reference, opts, geometry, bad_pixels, background_mask)
+    y, ref, scale, excluded, fft, coherence = pair.y, pair.ref, pair.scale, pair.excluded, pair.fft, pair.coherence
+    xp = get_array_module(y)
+    background_mask = pair.background_mask
+    drift, unseen, moved = pair.drift, pair.unseen, pair.unseen is not None
     t = _transmission(ref, diffuser, opts, geometry, coherence, y.shape, fft)
-    drift, unseen = measured_drift(y, ref, opts.diffuser_drift, fft)
-    moved = unseen is not None
-    excluded = outliers if n_outliers else None
-    if bad is not None:
-        excluded = bad if excluded is None else excluded | bad
+    probe = None
+    if diffuser is None and probes_diffuser(pair.requested, opts.diffuser_model):
+        probe = _probed_diffuser(t, pair, opts, geometry)
+        t, kappa = probe.transmission, probe.beta_over_delta
+        opts = replace(opts, diffuser_model=probe.model)
     if moved:
         t = calibration.shift_transmission(t, drift, fft=fft)
-        # the grains that drifted into the frame were never in the reference
-        unseen = xp.asarray(unseen)
-        excluded = unseen if excluded is None else excluded | unseen
     build = _model_builder(t, y.shape, geometry, coherence, opts, excluded, fft)
     grid = _first_field_grid(opts.field_upsample, t, pixel_size_m, coherence.x_m, coherence.y_m, fft)
     model = build(field_upsample=grid.field_upsample)
@@ -668,15 +701,150 @@ def retrieve_projection(
             prior,
             kappa,
             diffuser_given=diffuser is not None,
-            diffuser_model_requested=requested,
+            diffuser_model_requested=pair.requested,
+            diffuser_probe=probe,
             drift=drift,
             moved=moved,
-            outliers=n_outliers,
-            reference_outliers=int(ref_outliers.sum()),
-            bad_pixels=0 if bad is None else int(bad.sum()),
+            outliers=pair.outliers,
+            reference_outliers=pair.reference_outliers,
+            bad_pixels=pair.bad_pixels,
         ),
         background=mask,
     )
+
+
+@dataclass
+class _Pair:
+    """The sample and reference as the solver reads them, and what was measured on them."""
+
+    y: Any  # the sample, spikes repaired (and left out of the data term through ``excluded``)
+    ref: Any  # the reference, spikes repaired: the diffuser estimate reads every pixel
+    scale: float  # the reference's mean: the data term's unit
+    excluded: Any  # pixels out of the data term (spikes, bad_pixels, unseen grains), or None
+    drift: tuple[float, float]
+    unseen: Any  # frame pixels whose grains the reference never saw, or None (t_r not moved)
+    coherence: _Coherence
+    fft: FFT
+    requested: str  # the diffuser model asked for, before "auto" was resolved
+    outliers: int
+    reference_outliers: int
+    bad_pixels: int
+    background_mask: Any = None
+
+
+def _prepared_pair(
+    sample, reference, opts: RetrievalOptions, geometry: Geometry, bad_pixels=None, background_mask=None
+) -> tuple[_Pair, RetrievalOptions, dict, float | None]:
+    """Every check of a PWF retrieval before any work, then the pair repaired, the coherence
+    lengths (given or calibrated), the grids resolved and the drift measured; with the checked
+    options, the single-material prior and the diffuser's kappa (:func:`_checked_pwf_options`)."""
+    xp = get_array_module(sample, reference)
+    y, ref = _check_pair(sample, reference, xp)
+    background_mask = _checked_background_mask(background_mask, tuple(y.shape))
+    requested = opts.diffuser_model
+    opts, prior, kappa = _checked_pwf_options(opts, y.shape, geometry)
+    # spikes: the reference is repaired (the diffuser estimate needs every pixel), the
+    # sample's are left out of the data term (and repaired for the statistics that read it)
+    ref, ref_outliers = repair_outliers(ref, opts.outlier_sigma)
+    y, outliers = repair_outliers(y, opts.outlier_sigma)
+    n_outliers = int(outliers.sum())
+    bad = _checked_bad_pixels(bad_pixels, y.shape, xp)
+    coherence = _coherence(ref, geometry, opts)
+    opts = _resolved_grids(opts, geometry, coherence)
+    fft = FFT.for_module(xp, opts.fft_workers)
+    scale = float(xp.mean(ref))
+    if not scale > 0:
+        raise ValueError("reference has zero mean intensity")
+    drift, unseen = measured_drift(y, ref, opts.diffuser_drift, fft)
+    excluded = outliers if n_outliers else None
+    if bad is not None:
+        excluded = bad if excluded is None else excluded | bad
+    if unseen is not None:
+        # the grains that drifted into the frame were never in the reference
+        unseen = xp.asarray(unseen)
+        excluded = unseen if excluded is None else excluded | unseen
+    pair = _Pair(
+        y,
+        ref,
+        scale,
+        excluded,
+        drift,
+        unseen,
+        coherence,
+        fft,
+        requested,
+        n_outliers,
+        int(ref_outliers.sum()),
+        0 if bad is None else int(bad.sum()),
+        background_mask,
+    )
+    return pair, opts, prior, kappa
+
+
+#: Iterations of each diffuser model that ``diffuser_model="auto"`` runs on the sample where
+#: the absorption rule gives zero phase (:func:`_probed_diffuser`).
+DIFFUSER_PROBE_ITER = 40
+#: ``"auto"`` takes the single-material fit over zero phase where its data residual after
+#: :data:`DIFFUSER_PROBE_ITER` iterations is below this fraction of zero phase's.
+DIFFUSER_PROBE_RATIO = 0.5
+
+
+@dataclass(frozen=True)
+class DiffuserChoice:
+    """The diffuser model ``"auto"`` chose by its probe, its t_r, and what decided it."""
+
+    model: str
+    transmission: Any  # t_r on the computational grid, where the reference was taken
+    beta_over_delta: float | None  # kappa of the single-material fit, None for zero phase
+    residuals_pct: dict  # each model's data residual after the probe, % of the mean reference
+
+
+def probes_diffuser(requested: str, resolved: str) -> bool:
+    """Whether ``diffuser_model=requested``, resolved by the absorption rule to ``resolved``
+    (:func:`chosen_diffuser_model`), probes both models on the sample: only "auto" where the
+    absorption rule chose zero phase, the direction benchmarks/diffuser_models.py found worth
+    it (where the grains absorb, zero phase's lower residual did not mean a better phase)."""
+    return requested == "auto" and resolved == "zero-phase"
+
+
+def _probe_residual(t, pair: _Pair, opts: RetrievalOptions, geometry: Geometry) -> float:
+    """The data residual (% of the mean reference) after :data:`DIFFUSER_PROBE_ITER`
+    iterations of Algorithm S1 from zero with diffuser ``t``, on the first field grid, the
+    paper's alpha where the discrepancy rule is asked (its ladder would cost more than the probe)."""
+    y = pair.y
+    if pair.unseen is not None:
+        t = calibration.shift_transmission(t, pair.drift, fft=pair.fft)
+    build = _model_builder(t, y.shape, geometry, pair.coherence, opts, pair.excluded, pair.fft)
+    grid = _first_field_grid(
+        opts.field_upsample, t, geometry.pixel_size_m, pair.coherence.x_m, pair.coherence.y_m, pair.fft
+    )
+    model = build(field_upsample=grid.field_upsample)
+    y_full = model.xp.zeros(model.shape, dtype=model.rdtype)
+    y_full[model.frame] = y / pair.scale
+    # exactly DIFFUSER_PROBE_ITER iterations, whatever the stop rule asked of the solve
+    probe = replace(opts, max_iter=DIFFUSER_PROBE_ITER, min_iter=DIFFUSER_PROBE_ITER, tol=0.0, rtol=0.0, jtol=0.0)
+    sol = _solver_run(y_full, probe)(model, psi0=None)
+    return residual_rmse_pct(sol, model, pair.excluded)
+
+
+def _probed_diffuser(t_zero_phase, pair: _Pair, opts: RetrievalOptions, geometry: Geometry) -> DiffuserChoice:
+    """``diffuser_model="auto"`` where the grains hardly absorb: zero phase (the paper's
+    estimate, ``t_zero_phase``), unless a short run with the single-material fit leaves under
+    :data:`DIFFUSER_PROBE_RATIO` of zero phase's data residual. On 80 random scenes this
+    switched 4 (their phase error 1.28 -> 0.09 at best) and none the wrong way
+    (docs/validation.md, "Which diffuser model, scene by scene")."""
+    single = replace(opts, diffuser_model="single-material")
+    kappa = chosen_diffuser_model(
+        "single-material", opts.diffuser_material, opts.diffuser_beta_over_delta, geometry.energy_eV
+    )[1]
+    t_single = _transmission(pair.ref, None, single, geometry, pair.coherence, pair.y.shape, pair.fft)
+    residuals = {
+        "zero-phase": _probe_residual(t_zero_phase, pair, opts, geometry),
+        "single-material": _probe_residual(t_single, pair, single, geometry),
+    }
+    if residuals["single-material"] < DIFFUSER_PROBE_RATIO * residuals["zero-phase"]:
+        return DiffuserChoice("single-material", t_single, kappa, residuals)
+    return DiffuserChoice("zero-phase", t_zero_phase, None, residuals)
 
 
 def _checked_bad_pixels(bad_pixels, frame_shape: tuple[int, int], xp):
@@ -1043,6 +1211,7 @@ def _parameters(
     *,
     diffuser_given: bool,
     diffuser_model_requested: str,
+    diffuser_probe: DiffuserChoice | None,
     drift,
     moved: bool,
     outliers: int,
@@ -1081,6 +1250,7 @@ def _parameters(
         "diffuser_model": opts.diffuser_model,
         "diffuser_model_requested": diffuser_model_requested,
         "diffuser_given": diffuser_given,
+        "diffuser_probe_residual_pct": diffuser_probe.residuals_pct if diffuser_probe else None,
         "diffuser_beta_over_delta": kappa,
         "diffuser_refine_iter": opts.diffuser_refine_iter,
         "diffuser_upstream_m": opts.diffuser_upstream_m,

@@ -182,6 +182,34 @@ def test_the_diffuser_is_fitted_once_per_position_and_kept(tiny_scan, tmp_path, 
     np.testing.assert_allclose(g["phase"][0, :4], before, rtol=1e-5, atol=1e-6)
 
 
+def test_a_scan_chooses_each_positions_diffuser_model_once_by_the_probe(tiny_scan, tmp_path, monkeypatch):
+    """Where "auto" probes (grains that hardly absorb: here a kappa of 1e-4 given), each
+    position's model is chosen on its middle projection, recorded, and every projection of
+    the position is retrieved with it: forced to switch, the store is the single-material
+    run's; forced to stay, the zero-phase run's."""
+    from pwf_dask import retrieval
+
+    weak = dict(FAST, diffuser_beta_over_delta=1e-4)
+    stores = {}
+    for name, ratio, model in (("switch", 1e9, "auto"), ("stay", 0.0, "auto"), ("single", None, "single-material")):
+        if ratio is not None:
+            monkeypatch.setattr(retrieval, "DIFFUSER_PROBE_RATIO", ratio)
+        workflow._DIFFUSERS.clear()
+        stores[name] = tmp_path / f"{name}.zarr"
+        workflow.retrieve_scan(tiny_scan, stores[name], **weak, diffuser_model=model)
+    g = zarr.open_group(str(stores["switch"]), mode="r", use_consolidated=False)
+    assert json.loads(g.attrs["diffuser_model_per_position"]) == {"0": "single-material", "1": "single-material"}
+    assert g.attrs["diffuser_model_chosen"] == "single-material"
+    probe = json.loads(g.attrs["diffuser_probe_residual_pct"])
+    assert set(probe) == {"0", "1"} and set(probe["0"]) == {"zero-phase", "single-material"}
+    stay = zarr.open_group(str(stores["stay"]), mode="r", use_consolidated=False)
+    assert stay.attrs["diffuser_model_chosen"] == "zero-phase"
+    stores_equal(stores["switch"], stores["single"])
+    single = zarr.open_group(str(stores["single"]), mode="r", use_consolidated=False)
+    assert "diffuser_probe_residual_pct" not in single.attrs
+    assert not np.allclose(stay["phase"][...], single["phase"][...], atol=1e-4)
+
+
 def test_angle_chains_keep_halves_and_positions_apart():
     """Every projection once; each chain in angle order, every other angle, one position: the
     FSC's even/odd halves and positions never share a start. Length 1 is the paper's way."""

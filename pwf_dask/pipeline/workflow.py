@@ -105,34 +105,68 @@ _DIFFUSER_OPTIONS = (
 DIFFUSER_ARRAY = "diffuser"
 
 
-def _fit_diffuser(reference, attrs, coherence, options, fft_workers):
-    """The diffuser t_r of one position, fitted to its repaired reference (Methods, Diffuser
-    transmission function; :func:`pwf_dask.retrieval.estimate_diffuser`)."""
+def _absorption_model(attrs, options) -> str:
+    """The diffuser model the options name, "auto" resolved by the grains' absorption alone
+    (:func:`pwf_dask.retrieval.chosen_diffuser_model`)."""
     from pwf_dask import retrieval
 
+    return retrieval.chosen_diffuser_model(
+        options.get("diffuser_model", DEFAULTS.diffuser_model),
+        options.get("diffuser_material", DEFAULTS.diffuser_material),
+        options.get("diffuser_beta_over_delta"),
+        float(attrs["energy_eV"]),
+    )[0]
+
+
+def _fit_diffuser(scan_path, p, reference, coherence, options, xp, fft_workers):
+    """Position p's diffuser t_r fitted to its repaired reference (Methods, Diffuser
+    transmission function; :func:`pwf_dask.retrieval.estimate_diffuser`), and its model: where
+    ``"auto"`` probes (:func:`pwf_dask.retrieval.choose_diffuser`), on the position's projection
+    at the middle angle, so that every task that fits it chooses alike.
+    Returns (t_r, model, each model's probe residual in % or {})."""
+    from pwf_dask import retrieval
+
+    g, flat, dark, corrected = _scan_frames(scan_path)
+    model = _absorption_model(g.attrs, options)
+    if retrieval.probes_diffuser(options.get("diffuser_model", DEFAULTS.diffuser_model), model):
+        index = (p, g["projections"].shape[1] // 2)
+        sample, clipped = _read_corrected(g, "projections", index, flat, dark, corrected, with_saturated=True)
+        choice = retrieval.choose_diffuser(
+            xp.asarray(sample),
+            reference,
+            **Geometry.from_attrs(g.attrs).keywords(with_upstream=False),
+            coherence_length_x_m=coherence[0],
+            coherence_length_y_m=coherence[1],
+            bad_pixels=None if clipped is None else xp.asarray(clipped),
+            **{**options, "fft_workers": fft_workers},
+        )
+        return choice.transmission, choice.model, choice.residuals_pct
     chosen = {k: options[k] for k in _DIFFUSER_OPTIONS if k in options}
     repaired, _ = repair_outliers(reference, options.get("outlier_sigma", DEFAULTS.outlier_sigma))
-    return retrieval.estimate_diffuser(
+    t = retrieval.estimate_diffuser(
         repaired,  # the fit reads every pixel
-        energy_eV=float(attrs["energy_eV"]),
-        pixel_size_m=float(attrs["pixel_size_m"]),
-        diffuser_detector_distance_m=float(attrs["diffuser_detector_distance_m"]),
+        energy_eV=float(g.attrs["energy_eV"]),
+        pixel_size_m=float(g.attrs["pixel_size_m"]),
+        diffuser_detector_distance_m=float(g.attrs["diffuser_detector_distance_m"]),
         coherence_length_x_m=coherence[0],
         coherence_length_y_m=coherence[1],
         fft_workers=fft_workers,
         **chosen,
     )
+    return t, model, {}
 
 
 def _diffuser_task(p, *, scan_path, options, device, fft_workers, coherence):
     """Stage task: position p's diffuser, fitted once for the whole scan; returned to the
-    client (complex64), which stores it for every projection task of the position."""
+    client (complex64) with its model, and stored for every projection task of the position."""
     g, flat, dark, corrected = _scan_frames(scan_path)
     reference = _read_corrected(g, "reference", p, flat, dark, corrected)
     xp = resolve_device(device)
     t0 = time.perf_counter()
-    t = _fit_diffuser(xp.asarray(reference), g.attrs, coherence[p], options, worker_fft_threads(fft_workers))
-    return p, to_numpy(t).astype(np.complex64), time.perf_counter() - t0
+    t, model, probe = _fit_diffuser(
+        scan_path, p, xp.asarray(reference), coherence[p], options, xp, worker_fft_threads(fft_workers)
+    )
+    return p, to_numpy(t).astype(np.complex64), time.perf_counter() - t0, model, probe
 
 
 def _stored_diffuser(recon_path: str, p: int):
@@ -178,7 +212,8 @@ def _diffuser_grid_shape(scan_path, coherence, options) -> tuple[int, int]:
 
 def _fit_diffusers(runner, recon_path: str, positions: list[int], **task) -> dict:
     """Fit the diffusers of ``positions`` not yet in the store, one task per position, and
-    store them (issue #31: once per position in a scan, whatever the number of workers)."""
+    store them (issue #31: once per position in a scan, whatever the number of workers).
+    Returns {position: (seconds, model, probe residuals)} for :func:`_record_diffuser_models`."""
     import zarr
 
     todo = [p for p in positions if _stored_diffuser(recon_path, p) is None]
@@ -191,16 +226,45 @@ def _fit_diffusers(runner, recon_path: str, positions: list[int], **task) -> dic
         n = g["phase"].shape[0]
         dims = ("position", "diffuser_y", "diffuser_x", "re_im")
         scan_io.create_variable(g, DIFFUSER_ARRAY, (n, *shape, 2), (1, *shape, 2), dims, "float32", np.nan)
-    for p, t, _ in fitted:
+    for p, t, *_ in fitted:
         pair = np.full((*shape, 2), np.nan, dtype=np.float32)
         pair[: t.shape[0], : t.shape[1], 0], pair[: t.shape[0], : t.shape[1], 1] = t.real, t.imag
         g[DIFFUSER_ARRAY][p] = pair
-    return {p: seconds for p, _, seconds in fitted}
+    return {p: (seconds, model, probe) for p, _, seconds, model, probe in fitted}
+
+
+def _record_diffuser_models(g, fitted: dict) -> None:
+    """The store's record of each position's diffuser fit: its seconds, its model
+    (``diffuser_model_per_position``, which a resumed run reads back), the probe's residuals
+    where ``"auto"`` probed, and ``diffuser_model_chosen``: the one model, or "per position"
+    where they differ."""
+    g.attrs["diffuser_fit_s"] = json.dumps({str(p): round(t, 3) for p, (t, _, _) in fitted.items()})
+    models = json.loads(g.attrs.get("diffuser_model_per_position", "{}"))
+    probes = json.loads(g.attrs.get("diffuser_probe_residual_pct", "{}"))
+    for p, (_, model, probe) in fitted.items():
+        models[str(p)] = model
+        if probe:
+            probes[str(p)] = {k: round(v, 4) for k, v in probe.items()}
+    g.attrs["diffuser_model_per_position"] = json.dumps(models)
+    if probes:
+        g.attrs["diffuser_probe_residual_pct"] = json.dumps(probes)
+    distinct = set(models.values())
+    g.attrs["diffuser_model_chosen"] = distinct.pop() if len(distinct) == 1 else "per position"
+
+
+def _stored_model(recon_path, p: int, attrs, options) -> str:
+    """Position p's diffuser model as the store recorded it beside its diffuser, else (a store
+    made before the record) the absorption rule's, which fitted it."""
+    import zarr
+
+    g = zarr.open_group(str(recon_path), mode="r", use_consolidated=False)
+    models = json.loads(g.attrs.get("diffuser_model_per_position", "{}"))
+    return models.get(str(p), _absorption_model(attrs, options))
 
 
 def _position_diffuser(scan_path, recon_path, p, reference, attrs, coherence, options, device, fft_workers):
-    """Position p's diffuser for a projection task: the stored fit (one read per worker), or
-    a fit of this worker's own where the store has none."""
+    """Position p's diffuser and its model for a projection task: the stored fit (one read per
+    worker), or a fit of this worker's own where the store has none."""
     chosen = {k: options[k] for k in _DIFFUSER_OPTIONS if k in options}
     repair = options.get("outlier_sigma", DEFAULTS.outlier_sigma)
     key = (str(scan_path), str(recon_path), p, tuple(coherence), device, repair, tuple(sorted(chosen.items())))
@@ -210,10 +274,11 @@ def _position_diffuser(scan_path, recon_path, p, reference, attrs, coherence, op
                 _DIFFUSERS.pop(next(iter(_DIFFUSERS)))
             stored = None if recon_path is None else _stored_diffuser(str(recon_path), p)
             if stored is None:
-                t = _fit_diffuser(reference, attrs, coherence, options, fft_workers)
+                xp = resolve_device(device)
+                t, model, _ = _fit_diffuser(scan_path, p, reference, coherence, options, xp, fft_workers)
             else:
-                t = resolve_device(device).asarray(stored)
-            _DIFFUSERS[key] = t
+                t, model = resolve_device(device).asarray(stored), _stored_model(recon_path, p, attrs, options)
+            _DIFFUSERS[key] = (t, model)
         return _DIFFUSERS[key]
 
 
@@ -277,7 +342,7 @@ def _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, co
         psi += 1j * done["phase"][start_from]
         extra["initial"] = xp.asarray(psi)
     if options.get("method", "pwf") == "pwf":
-        extra["diffuser"] = _position_diffuser(
+        extra["diffuser"], extra["diffuser_model"] = _position_diffuser(
             scan_path,
             recon_path,
             p,
@@ -295,8 +360,7 @@ def _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, co
         coherence_length_x_m=coherence[p][0],
         coherence_length_y_m=coherence[p][1],
         fft_workers=worker_fft_threads(fft_workers),
-        **options,
-        **extra,
+        **{**options, **extra},
     )
 
 
@@ -581,7 +645,7 @@ def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, co
     try:
         if opts.get("method", "pwf") == "pwf":
             positions = sorted({p for chain in chains for p, _ in chain})
-            fit_s = _fit_diffusers(
+            fitted = _fit_diffusers(
                 runner,
                 recon_path,
                 positions,
@@ -591,8 +655,8 @@ def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, co
                 fft_workers=runner.fft_workers(),
                 coherence=coherence,
             )
-            if fit_s:
-                grp.attrs["diffuser_fit_s"] = json.dumps({str(p): round(t, 3) for p, t in fit_s.items()})
+            if fitted:
+                _record_diffuser_models(grp, fitted)
         chained = runner.map(
             _retrieve_chain,
             chains,
