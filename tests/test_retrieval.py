@@ -766,6 +766,8 @@ def test_auto_probes_the_single_material_fit_where_the_zero_phase_estimate_fails
     geometry = {k: v for k, v in kw.items() if k != "background_mask"}
     choice = choose_diffuser(sim.sample, sim.reference, **geometry)
     assert choice.model == "single-material" and choice.residuals_pct == p["diffuser_probe_residual_pct"]
+    # the probe's own alpha: the choice does not follow the solve's regularizer
+    assert choose_diffuser(sim.sample, sim.reference, **geometry, alpha="paper").residuals_pct == choice.residuals_pct
     given = retrieve_projection(
         sim.sample, sim.reference, **kw, diffuser=choice.transmission, diffuser_model=choice.model
     )

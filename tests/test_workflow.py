@@ -191,7 +191,13 @@ def test_a_scan_chooses_each_positions_diffuser_model_once_by_the_probe(tiny_sca
 
     weak = dict(FAST, diffuser_beta_over_delta=1e-4)
     stores = {}
-    for name, ratio, model in (("switch", 1e9, "auto"), ("stay", 0.0, "auto"), ("single", None, "single-material")):
+    runs = (
+        ("switch", 1e9, "auto"),
+        ("stay", 0.0, "auto"),
+        ("single", None, "single-material"),
+        ("zero", None, "zero-phase"),
+    )
+    for name, ratio, model in runs:
         if ratio is not None:
             monkeypatch.setattr(retrieval, "DIFFUSER_PROBE_RATIO", ratio)
         workflow._DIFFUSERS.clear()
@@ -205,6 +211,7 @@ def test_a_scan_chooses_each_positions_diffuser_model_once_by_the_probe(tiny_sca
     stay = zarr.open_group(str(stores["stay"]), mode="r", use_consolidated=False)
     assert stay.attrs["diffuser_model_chosen"] == "zero-phase"
     stores_equal(stores["switch"], stores["single"])
+    stores_equal(stores["stay"], stores["zero"])
     single = zarr.open_group(str(stores["single"]), mode="r", use_consolidated=False)
     assert "diffuser_probe_residual_pct" not in single.attrs
     assert not np.allclose(stay["phase"][...], single["phase"][...], atol=1e-4)
