@@ -118,15 +118,16 @@ def _absorption_model(attrs, options) -> str:
     )[0]
 
 
-def _fit_diffuser(scan_path, p, reference, coherence, options, xp, fft_workers):
+def _fit_diffuser(frames, p, reference, coherence, options, xp, fft_workers):
     """Position p's diffuser t_r fitted to its repaired reference (Methods, Diffuser
     transmission function; :func:`pwf_dask.retrieval.estimate_diffuser`), and its model: where
     ``"auto"`` probes (:func:`pwf_dask.retrieval.choose_diffuser`), on the position's projection
     at the middle angle, so that every task that fits it chooses alike.
-    Returns (t_r, model, each model's probe residual in % or {})."""
+    ``frames``: the scan as :func:`_scan_frames` opened it. Returns (t_r, model, each model's
+    probe residual in % or {})."""
     from pwf_dask import retrieval
 
-    g, flat, dark, corrected = _scan_frames(scan_path)
+    g, flat, dark, corrected = frames
     model = _absorption_model(g.attrs, options)
     if retrieval.probes_diffuser(options.get("diffuser_model", DEFAULTS.diffuser_model), model):
         index = (p, g["projections"].shape[1] // 2)
@@ -159,12 +160,12 @@ def _fit_diffuser(scan_path, p, reference, coherence, options, xp, fft_workers):
 def _diffuser_task(p, *, scan_path, options, device, fft_workers, coherence):
     """Stage task: position p's diffuser, fitted once for the whole scan; returned to the
     client (complex64) with its model, and stored for every projection task of the position."""
-    g, flat, dark, corrected = _scan_frames(scan_path)
+    frames = g, flat, dark, corrected = _scan_frames(scan_path)
     reference = _read_corrected(g, "reference", p, flat, dark, corrected)
     xp = resolve_device(device)
     t0 = time.perf_counter()
     t, model, probe = _fit_diffuser(
-        scan_path, p, xp.asarray(reference), coherence[p], options, xp, worker_fft_threads(fft_workers)
+        frames, p, xp.asarray(reference), coherence[p], options, xp, worker_fft_threads(fft_workers)
     )
     return p, to_numpy(t).astype(np.complex64), time.perf_counter() - t0, model, probe
 
@@ -262,7 +263,7 @@ def _stored_model(recon_path, p: int, attrs, options) -> str:
     return models.get(str(p), _absorption_model(attrs, options))
 
 
-def _position_diffuser(scan_path, recon_path, p, reference, attrs, coherence, options, device, fft_workers):
+def _position_diffuser(scan_path, recon_path, p, reference, frames, coherence, options, device, fft_workers):
     """Position p's diffuser and its model for a projection task: the stored fit (one read per
     worker), or a fit of this worker's own where the store has none."""
     chosen = {k: options[k] for k in _DIFFUSER_OPTIONS if k in options}
@@ -275,9 +276,12 @@ def _position_diffuser(scan_path, recon_path, p, reference, attrs, coherence, op
             stored = None if recon_path is None else _stored_diffuser(str(recon_path), p)
             if stored is None:
                 xp = resolve_device(device)
-                t, model, _ = _fit_diffuser(scan_path, p, reference, coherence, options, xp, fft_workers)
+                t, model, _ = _fit_diffuser(frames, p, reference, coherence, options, xp, fft_workers)
             else:
-                t, model = resolve_device(device).asarray(stored), _stored_model(recon_path, p, attrs, options)
+                t, model = (
+                    resolve_device(device).asarray(stored),
+                    _stored_model(recon_path, p, frames[0].attrs, options),
+                )
             _DIFFUSERS[key] = (t, model)
         return _DIFFUSERS[key]
 
@@ -347,7 +351,7 @@ def _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, co
             recon_path,
             p,
             xp.asarray(reference),
-            g.attrs,
+            (g, flat, dark, corrected),
             coherence[p],
             options,
             device,
