@@ -13,7 +13,9 @@
 #   calibration_dose.* ~25 min: coherence calibration (template, Gaussian) and PWF against dose
 #   calibration_sweep.* ~3 min: the template fit against the Gaussian over 80 diffusers and geometries
 #   geometry_sweep.*   ~2 min: PWF on other energies, pixels, coherence lengths and distances
-#   random_scenes.*    ~18 min: PWF (calibrated, true lengths) and UMPA K=1 on 80 random geometries
+#   random_scenes.*    ~30 min: PWF (calibrated, true lengths) and UMPA K=1 on 80 random geometries
+#   diffuser_models.*  ~30 min: both diffuser models and "auto"'s probe on the 80 random geometries
+#                      (diffuser_models_calibrated.*: --calibrated --scenes 40, ~14 min)
 #   frame_size.*       ~12 min: phase gain at 256^2-1024^2 and on wide 25 keV strips of PMMA rods
 #   frame_size_grits.* ~2 min: the 160 x 2220 strip on P1200 and P2000 sandpaper
 #   frame_size_camera.* ~11 min: the paper preset on the camera's whole 2160 x 2560 frame and row crops
