@@ -80,6 +80,10 @@ def iteration_benchmark(
             xp.cuda.Stream.null.synchronize()
 
     fns = [lambda: fft.fft2(a), iteration(short), iteration(long)]
+    # scipy's pocketfft beside the library in use: the issue's second yardstick
+    pocketfft = FFT.for_module(np, fft.workers, "scipy") if xp is np else None
+    if pocketfft is not None and fft.library != "scipy":
+        fns.append(lambda: pocketfft.fft2(a))
     literal = upsample == 1 and field_upsample == 1
     if literal:
         inputs = algorithm_s1_inputs(model, p, cx, cy)
@@ -93,7 +97,8 @@ def iteration_benchmark(
         fns.append(literal_iterations)
     times = interleaved_min(fns, sync, rounds=repeat)
     t_fft, t_it = times[0], (times[2] - times[1]) / (long - short)
-    t_lit = times[3] / (long - short) if literal else math.nan
+    t_lit = times[-1] / (long - short) if literal else math.nan
+    t_scipy = times[3] if len(fns) > 3 + literal else (t_fft if fft.library == "scipy" else math.nan)
     return {
         "device": device_name(xp),
         "variant": f"L1{'>0' if l1_m else '=0'}, "
@@ -102,8 +107,11 @@ def iteration_benchmark(
         "shape": f"{shape[0]}x{shape[1]}",
         "pixels": shape[0] * shape[1],
         "iteration_ms": t_it * 1e3,
+        "fft_library": fft.library,
         "fft_ms": t_fft * 1e3,
         "ratio": t_it / t_fft,
+        "scipy_fft_ms": t_scipy * 1e3,
+        "scipy_ratio": t_it / t_scipy,
         "literal_ms": t_lit * 1e3,
         "literal_ratio": t_lit / t_fft,
         "fft_workers": fft.workers,
@@ -131,13 +139,14 @@ def run_iteration_benchmark(out_dir: str | Path, device: str = "cpu", sizes=None
             print(
                 f"{row['shape']:>10}  {row['variant']:<28} {row['fft_workers']} thr  "
                 f"iteration {row['iteration_ms']:9.2f} ms   FFT {row['fft_ms']:8.3f} ms   ratio {row['ratio']:6.1f}"
+                f"   / scipy's FFT {row['scipy_ratio']:6.1f}"
                 f"   as printed {row['literal_ratio']:6.1f}",
                 flush=True,
             )
     tag = "gpu" if xp is not np else "cpu"
     out = write_rows_csv(out_dir, f"bench_iteration_{tag}.csv", rows)
     lines = [
-        f"# PWF iteration time / complex64 FFT time ({rows[0]['device']})",
+        f"# PWF iteration time / complex64 FFT time ({rows[0]['device']}, FFTs: {rows[0]['fft_library']})",
         "",
         "Measured in one run by `pwf-dask bench iteration`; an iteration is Algorithm S1 with",
         "Algorithm S2's model, Wirtinger derivative, preconditioner and regularizer, timed as the",
@@ -147,9 +156,12 @@ def run_iteration_benchmark(out_dir: str | Path, device: str = "cpu", sizes=None
         "*As printed*: Algorithms S1/S2 transcribed line by line (`tests/algorithm_s1.py`:",
         "16 complex FFTs, 14 with L1 = 0, one array pass per printed operation, as the authors'",
         "released code), timed in the same interleaved rounds; it gives the solver's direction (test).",
+        "*FFT*: one complex64 FFT of the library in use (`PWF_DASK_FFT`: MKL on Intel CPUs, else",
+        "scipy's pocketfft); *scipy FFT*: scipy's, timed beside it (the same column without MKL).",
         "",
-        "| shape | variant | threads | iteration (ms) | FFT (ms) | ratio | as printed (ms) | ratio | speed-up |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| shape | variant | threads | iteration (ms) | FFT (ms) | ratio | scipy FFT (ms) | ratio to scipy FFT "
+        "| as printed (ms) | ratio | speed-up |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
 
     def printed(r):
@@ -159,7 +171,7 @@ def run_iteration_benchmark(out_dir: str | Path, device: str = "cpu", sizes=None
 
     lines += [
         f"| {r['shape']} | {r['variant']} | {r['fft_workers']} | {r['iteration_ms']:.2f} | {r['fft_ms']:.3f} "
-        f"| {r['ratio']:.1f} {printed(r)}"
+        f"| {r['ratio']:.1f} | {r['scipy_fft_ms']:.3f} | {r['scipy_ratio']:.1f} {printed(r)}"
         for r in rows
     ]
     (out / f"bench_iteration_{tag}.md").write_text("\n".join(lines) + "\n")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from functools import cache
 from types import ModuleType
 from typing import Any
 
@@ -113,21 +114,140 @@ def _raise_mmap_threshold() -> bool:
 _THREADED_FFT_MIN_POINTS = 1 << 16
 
 
+#: CPU FFT libraries of :class:`FFT`: ``auto`` takes Intel MKL's (``mkl_fft``) on an Intel
+#: CPU where it imports, else scipy's pocketfft
+CPU_FFT_LIBRARIES = ("auto", "mkl", "scipy")
+
+
+def default_fft_library() -> str:
+    """``PWF_DASK_FFT`` (auto, mkl or scipy), ``auto`` when unset."""
+    return os.environ.get("PWF_DASK_FFT", "auto").strip().lower() or "auto"
+
+
+@cache
+def _mkl_scipy_fft() -> ModuleType | None:
+    # Intel's OpenMP lets a thread spin 200 ms after each threaded transform, taking a core
+    # from the process's other tasks and from the other workers of a node; 0 lets it sleep
+    # (2 threads at 1024^2 and 2048^2: the same speed). A value the user set is kept.
+    os.environ.setdefault("KMP_BLOCKTIME", "0")
+    try:
+        from mkl_fft.interfaces import scipy_fft
+    except ImportError:  # no wheel for this platform (not x86-64), or MKL's runtime missing
+        return None
+    return scipy_fft
+
+
+@cache
+def cpu_vendor() -> str:
+    """The CPU's vendor string (``GenuineIntel``, ``AuthenticAMD``, ...), "" where unknown."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("vendor_id"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    import platform
+
+    return "GenuineIntel" if "intel" in platform.processor().lower() else ""
+
+
+def resolve_fft_library(library: str | None = None) -> str:
+    """The CPU FFT library :class:`FFT` uses: ``"mkl"`` or ``"scipy"``.
+
+    ``None`` reads ``PWF_DASK_FFT``. ``"auto"`` takes MKL (``mkl_fft.interfaces.scipy_fft``:
+    scipy's signatures, ``workers`` honoured per call and per thread) on an Intel CPU where it
+    imports, pocketfft elsewhere. Measured with complex64 (docs/benchmarks.md): on an Intel Xeon
+    with AVX-512 MKL was 2.5-2.9x faster than pocketfft at 1024^2 and 2048^2 on one thread,
+    2.0-2.5x on two (real transforms 1.5-2.2x), a PWF iteration 1.4-1.7x; on an AMD EPYC
+    (session 38) 1.08-1.5x on one thread and slower than pocketfft on two.
+    """
+    library = default_fft_library() if library is None else str(library).strip().lower()
+    if library not in CPU_FFT_LIBRARIES:
+        raise ValueError(f"FFT library must be one of {', '.join(CPU_FFT_LIBRARIES)}, not {library!r}")
+    if library == "scipy" or (library == "auto" and cpu_vendor() != "GenuineIntel"):
+        return "scipy"
+    if _mkl_scipy_fft() is None:
+        if library == "mkl":
+            raise RuntimeError("FFT library 'mkl': mkl_fft does not import here (pip install mkl-fft mkl-service)")
+        return "scipy"
+    return "mkl"
+
+
+def _cpu_transform(module: ModuleType, name: str, a, s, workers: int, overwrite: bool):
+    """``name`` (fft2, ifft2, rfft2 or irfft2) over the last two axes by a scipy.fft-like module."""
+    if name == "rfft2":
+        return module.rfft2(a, s=s, workers=workers)
+    if name == "irfft2" and module.__name__.startswith("scipy"):
+        # two 1-D passes, not pocketfft's 2-D c2r: that allocates its own complex
+        # intermediate and measured 1.3-1.4x slower from 2048^2 on (2048^2, 2 threads:
+        # 12.6 ms against 8.9; 2200 x 2625: 19.1 against 14.6), even below; the column
+        # pass may work in the caller's memory when it no longer needs it
+        half = module.ifft(a, n=s[-2], axis=-2, workers=workers, overwrite_x=overwrite)
+        return module.irfft(half, n=s[-1], axis=-1, workers=workers, overwrite_x=True)
+    return getattr(module, name)(a, s=s, workers=workers, overwrite_x=overwrite)
+
+
+#: (transform, shape, s, dtype, workers, overwrite) -> whether MKL agrees with pocketfft there
+_MKL_AGREES: dict[tuple, bool] = {}
+
+
+def _mkl_agrees(name: str, a, s, workers: int, overwrite: bool) -> bool:
+    """Whether MKL's ``name`` gives pocketfft's transform for this input layout, checked once
+    per process on random numbers of the same shape and type.
+
+    MKL 2026.2 (mkl_fft 2.3.2) returns wrong numbers, with no error, for a column pass of
+    length 40 or 48 done in place: its rfft2 of any 40- or 48-row image and its in-place
+    column FFTs (found by comparing every length from 2 to 2999 with pocketfft; every other
+    length and every 2-D complex transform tried agreed to rounding). A layout where the two
+    disagree is transformed by pocketfft from then on, with one warning.
+    """
+    key = (name, a.shape, s, a.dtype.str, workers, overwrite)
+    agrees = _MKL_AGREES.get(key)
+    if agrees is None:
+        import scipy.fft
+
+        rng = np.random.default_rng(0)
+        if name == "irfft2":  # a real image's half spectrum: c2r transforms read no other
+            x = scipy.fft.rfft2(rng.standard_normal(a.shape[:-2] + s).astype(a.real.dtype))
+        else:
+            x = rng.standard_normal(a.shape).astype(a.real.dtype)
+            if np.iscomplexobj(a):
+                x = x + 1j * rng.standard_normal(a.shape).astype(a.real.dtype)
+        want = _cpu_transform(scipy.fft, name, x.copy(), s, workers, False)
+        got = _cpu_transform(_mkl_scipy_fft(), name, x.copy(), s, workers, overwrite)
+        tol = 1e-3 if x.real.dtype == np.float32 else 1e-9
+        agrees = bool(np.max(np.abs(got - want)) <= tol * np.max(np.abs(want)))
+        _MKL_AGREES[key] = agrees
+        if not agrees:
+            from pwf_dask.log import logger
+
+            logger.warning(
+                "MKL's %s of a %s %s array disagrees with pocketfft; pocketfft transforms it instead",
+                name,
+                "x".join(map(str, a.shape)),
+                a.dtype,
+            )
+    return agrees
+
+
 @dataclass(frozen=True)
 class FFT:
     """2-D FFTs over the last two axes for one array module, with a CPU thread budget."""
 
     xp: ModuleType
     workers: int = 1
+    #: the CPU's transforms (:func:`resolve_fft_library`): ``"mkl"`` or ``"scipy"``
+    library: str = "scipy"
 
     @classmethod
-    def for_module(cls, xp: ModuleType, workers: int | None = None) -> FFT:
+    def for_module(cls, xp: ModuleType, workers: int | None = None, library: str | None = None) -> FFT:
+        """``workers`` FFT threads (default :func:`default_fft_workers`); ``library`` on the CPU
+        (default ``PWF_DASK_FFT``, else MKL where it imports: :func:`resolve_fft_library`)."""
         if xp is np:
             recycle_large_arrays()
-        return cls(xp, default_fft_workers() if workers is None else max(1, int(workers)))
-
-    def _cpu(self) -> bool:
-        return self.xp is np
+        name = resolve_fft_library(library) if xp is np else xp.__name__
+        return cls(xp, default_fft_workers() if workers is None else max(1, int(workers)), name)
 
     def _threads(self, points: int) -> int:
         # pocketfft's threads cost more than they save on small grids: measured here with 2
@@ -135,43 +255,43 @@ class FFT:
         # even at 256 x 256, 1.6-2x faster from 512 x 512 on
         return self.workers if points >= _THREADED_FFT_MIN_POINTS else 1
 
-    # ``overwrite=True`` lets scipy.fft reuse the input's memory (the caller no longer needs
+    def _cpu(self, name: str, a, s, overwrite: bool):
+        import scipy.fft
+
+        workers = self._threads(a.size)
+        s = None if s is None else tuple(int(n) for n in s)
+        module = scipy.fft
+        if self.library == "mkl":
+            if not a.flags.c_contiguous:
+                # MKL read a broadcast (zero-stride) input wrongly; a copy is the layout checked
+                a, overwrite = np.ascontiguousarray(a), True
+            if _mkl_agrees(name, a, s, workers, overwrite):
+                module = _mkl_scipy_fft()
+        return _cpu_transform(module, name, a, s, workers, overwrite)
+
+    # ``overwrite=True`` lets the transform reuse the input's memory (the caller no longer needs
     # it): no fresh output array per transform, which at 2048^2 (32 MB, above glibc's mmap
     # threshold) costs page faults every call, and no defensive input copy in irfft2.
     # cupy.fft has no such flag; it is ignored there.
 
     def fft2(self, a, s=None, overwrite: bool = False):
-        if self._cpu():
-            import scipy.fft as sf
-
-            return sf.fft2(a, s=s, workers=self._threads(a.size), overwrite_x=overwrite)
+        if self.xp is np:
+            return self._cpu("fft2", a, s, overwrite)
         return self.xp.fft.fft2(a, s=s)
 
     def ifft2(self, a, s=None, overwrite: bool = False):
-        if self._cpu():
-            import scipy.fft as sf
-
-            return sf.ifft2(a, s=s, workers=self._threads(a.size), overwrite_x=overwrite)
+        if self.xp is np:
+            return self._cpu("ifft2", a, s, overwrite)
         return self.xp.fft.ifft2(a, s=s)
 
     def rfft2(self, a, s=None):
-        if self._cpu():
-            import scipy.fft as sf
-
-            return sf.rfft2(a, s=s, workers=self._threads(a.size))
+        if self.xp is np:
+            return self._cpu("rfft2", a, s, False)
         return self.xp.fft.rfft2(a, s=s)
 
     def irfft2(self, a, s, overwrite: bool = False):
-        if self._cpu():
-            import scipy.fft as sf
-
-            # two 1-D passes, not pocketfft's 2-D c2r: that allocates its own complex
-            # intermediate and measured 1.3-1.4x slower from 2048^2 on (2048^2, 2 threads:
-            # 12.6 ms against 8.9; 2200 x 2625: 19.1 against 14.6), even below; the column
-            # pass may work in the caller's memory when it no longer needs it
-            workers = self._threads(a.size)
-            half = sf.ifft(a, n=s[-2], axis=-2, workers=workers, overwrite_x=overwrite)
-            return sf.irfft(half, n=s[-1], axis=-1, workers=workers, overwrite_x=True)
+        if self.xp is np:
+            return self._cpu("irfft2", a, s, overwrite)
         return self.xp.fft.irfft2(a, s=s)
 
 

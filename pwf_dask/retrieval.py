@@ -1240,6 +1240,7 @@ def _parameters(
         "jtol": opts.jtol,
         "preconditioner": opts.preconditioner,
         "precision": opts.precision,
+        "fft_library": solved.model.fft.library,
         "normalization": opts.normalization,
         "upsample": opts.upsample,
         "field_upsample": solved.model.field_upsample,

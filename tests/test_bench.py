@@ -14,6 +14,9 @@ def test_bench_iteration_quick_writes_its_files(tmp_path, capsys):
     for r in rows:
         # a ratio, not a timing: both sides measured in the same run
         assert float(r["ratio"]) == pytest.approx(float(r["iteration_ms"]) / float(r["fft_ms"]), rel=1e-6)
+        # both yardsticks of issue #31: the library in use and scipy's pocketfft
+        assert r["fft_library"] in ("mkl", "scipy")
+        assert float(r["scipy_ratio"]) == pytest.approx(float(r["iteration_ms"]) / float(r["scipy_fft_ms"]), rel=1e-6)
         # the line-by-line port of Algorithms S1/S2, timed in the same rounds
         assert float(r["literal_ratio"]) == pytest.approx(float(r["literal_ms"]) / float(r["fft_ms"]), rel=1e-6)
     assert (tmp_path / "bench_iteration_cpu.png").stat().st_size > 1000

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from benchmarks.stability import Scene, errors
-from pwf_dask import retrieve_projection
+from pwf_dask import backend, retrieve_projection
 from pwf_dask.physics import optics
 from pwf_dask.pwf import solver
 from pwf_dask.retrieval import estimate_diffuser
@@ -53,6 +53,7 @@ def test_contract_result(scene):
     assert isinstance(res.phase, np.ndarray)
     assert res.converged and 0 < res.iterations <= 2000
     assert res.parameters["coherence_calibrated"]
+    assert res.parameters["fft_library"] == backend.resolve_fft_library()  # provenance
     # a thin sample: field_upsample="auto" keeps the paper's detector-grid model
     # P3000 grains alias on the detector grid: the field goes on the 1.5x grid (retrieval.diffuser_aliasing)
     assert res.parameters["diffuser_aliasing"] > 0.06 and res.parameters["field_upsample"] == 1.5

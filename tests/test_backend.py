@@ -1,0 +1,100 @@
+"""The CPU FFT libraries of pwf_dask.backend.FFT: MKL's transforms where mkl_fft imports,
+checked against scipy's pocketfft per input layout, pocketfft where they disagree."""
+
+import logging
+
+import numpy as np
+import pytest
+import scipy.fft
+
+from pwf_dask import backend
+from pwf_dask.backend import FFT
+
+mkl = pytest.mark.skipif(backend._mkl_scipy_fft() is None, reason="mkl_fft does not import here")
+
+
+def _input(name, shape, dtype, rng):
+    real = rng.standard_normal(shape).astype(dtype)
+    if name == "rfft2":
+        return real
+    if name == "irfft2":
+        return scipy.fft.rfft2(real)
+    return (real + 1j * rng.standard_normal(shape).astype(dtype)).astype(np.result_type(dtype, np.complex64))
+
+
+def _call(fft, name, a, shape, overwrite):
+    if name == "rfft2":
+        return fft.rfft2(a)
+    if name == "irfft2":
+        return fft.irfft2(a, shape, overwrite=overwrite)
+    return getattr(fft, name)(a, overwrite=overwrite)
+
+
+@mkl
+@pytest.mark.parametrize("name", ["fft2", "ifft2", "rfft2", "irfft2"])
+@pytest.mark.parametrize("shape", [(40, 52), (48, 30), (64, 64), (67, 130), (2, 48, 40)])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_mkl_transforms_give_pocketffts(name, shape, dtype, overwrite):
+    """Every transform, on the 40- and 48-row frames where MKL 2026.2 alone is wrong (its rfft2
+    and in-place column passes), a stack, both precisions, in place or not."""
+    rng = np.random.default_rng(3)
+    a = _input(name, shape, dtype, rng)
+    want = _call(FFT.for_module(np, 1, "scipy"), name, a.copy(), shape[-2:], False)
+    got = _call(FFT.for_module(np, 2, "mkl"), name, a.copy(), shape[-2:], overwrite)
+    assert got.dtype == want.dtype and got.shape == want.shape
+    tol = 2e-6 if dtype == np.float32 else 1e-12
+    np.testing.assert_allclose(got, want, rtol=0, atol=tol * np.abs(want).max())
+
+
+@mkl
+def test_mkl_reads_a_broadcast_input_as_pocketfft_does():
+    """A zero-stride view (np.broadcast_to), which MKL read wrongly, is copied first."""
+    row = np.exp(1j * np.linspace(0, 3, 48))
+    a = np.broadcast_to(row[None, :], (48, 48))
+    np.testing.assert_allclose(FFT.for_module(np, 1, "mkl").fft2(a), scipy.fft.fft2(a), atol=1e-9)
+
+
+def test_a_layout_the_library_gets_wrong_falls_back_to_pocketfft(monkeypatch, caplog):
+    """The per-layout check is real: a library that returns wrong numbers for one shape is
+    replaced there by pocketfft, with one warning, and used elsewhere."""
+
+    class Wrong:
+        __name__ = "mkl_fft.interfaces.scipy_fft"
+
+        def __getattr__(self, name):
+            fn = getattr(scipy.fft, name)
+
+            def call(a, *args, **kw):
+                out = fn(a, *args, **kw)
+                return out * 2 if a.shape[-2] == 40 else out
+
+            return call
+
+    monkeypatch.setattr(backend, "_mkl_scipy_fft", lambda: Wrong())
+    monkeypatch.setattr(backend, "_MKL_AGREES", {})
+    fft = FFT(np, 1, "mkl")
+    rng = np.random.default_rng(0)
+    a40, a41 = rng.standard_normal((40, 52)), rng.standard_normal((41, 52))
+    with caplog.at_level(logging.WARNING, logger="pwf_dask"):
+        np.testing.assert_allclose(fft.fft2(a40), scipy.fft.fft2(a40))
+        np.testing.assert_allclose(fft.fft2(a40), scipy.fft.fft2(a40))
+    assert backend._MKL_AGREES[("fft2", (40, 52), None, a40.dtype.str, 1, False)] is False
+    assert sum("disagrees with pocketfft" in r.getMessage() for r in caplog.records) == 1
+    np.testing.assert_allclose(fft.fft2(a41), scipy.fft.fft2(a41))
+    assert backend._MKL_AGREES[("fft2", (41, 52), None, a41.dtype.str, 1, False)] is True
+
+
+def test_the_library_is_chosen_by_name_or_environment(monkeypatch):
+    monkeypatch.setenv("PWF_DASK_FFT", "scipy")
+    assert FFT.for_module(np).library == "scipy"
+    monkeypatch.setenv("PWF_DASK_FFT", "fftw")
+    with pytest.raises(ValueError, match="FFT library must be one of auto, mkl, scipy, not 'fftw'"):
+        FFT.for_module(np)
+    monkeypatch.setattr(backend, "cpu_vendor", lambda: "AuthenticAMD")
+    assert FFT.for_module(np, library="auto").library == "scipy"  # MKL gains little there
+    monkeypatch.setattr(backend, "cpu_vendor", lambda: "GenuineIntel")
+    monkeypatch.setattr(backend, "_mkl_scipy_fft", lambda: None)
+    assert FFT.for_module(np, library="auto").library == "scipy"
+    with pytest.raises(RuntimeError, match="mkl_fft does not import here"):
+        FFT.for_module(np, library="mkl")
