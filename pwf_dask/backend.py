@@ -406,11 +406,3 @@ def inner(a, b) -> complex:
     for i in range(0, n, _INNER_BLOCK):
         total += complex(np.vdot(fa[i : i + _INNER_BLOCK], fb[i : i + _INNER_BLOCK]))
     return total
-
-
-def abs2(z):
-    """|z|^2 of a complex array as a real array, without the square root of abs."""
-    xp = get_array_module(z)
-    out = xp.square(z.real)
-    out += xp.square(z.imag)
-    return out

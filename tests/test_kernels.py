@@ -137,3 +137,51 @@ def test_the_iteration_on_mkl_transforms_gives_the_pocketfft_direction():
     # the lowest frequencies: 1.8e-5 of the largest entry measured, psi 0.9e-5
     np.testing.assert_allclose(d1, d0, atol=3e-5 * np.abs(d0).max())
     np.testing.assert_allclose(p1, p0, atol=1e-4 * np.abs(p0).max())
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("cdtype", [np.complex64, np.complex128])
+def test_each_cuda_kernel_gives_the_cupy_expression(cdtype):
+    """On a CUDA device each pass runs as one CuPy kernel (``kernels._CUDA_KERNELS``): it gives
+    the CuPy expressions it replaces (``kernels.cuda_kernels = False``) and the NumPy loops, to
+    the precision's rounding; the CPU emulator has no kernels, so this runs on a device only."""
+    cp = backend.cupy_or_none()
+    if cp is None:
+        pytest.skip("CuPy with a CUDA device is not available")
+    rng = np.random.default_rng(2)
+    shape, rdtype = (67, 130), np.dtype(cdtype).type(0).real.dtype
+
+    def c():
+        return (rng.normal(size=shape) + 1j * rng.normal(size=shape)).astype(cdtype)
+
+    def r():
+        return rng.normal(size=shape).astype(rdtype)
+
+    x, y, z, f, g, w = c(), c(), c(), r(), r(), np.abs(r())
+    mask = (r() > 0).astype(rdtype)
+    calls = [
+        (kernels.intensity, (x,)),
+        (kernels.residual_and_loss, (f, g, None)),
+        (kernels.residual_and_loss, (f, g, mask)),
+        (kernels.times_conj, (x, y)),
+        (kernels.weighted_power, (x, w)),
+        (kernels.descent_point, (x, y, z, 0.37)),
+        (kernels.momentum_point, (x, y, 0.81)),
+    ]
+    tol = dict(rtol=2e-6, atol=1e-5) if cdtype is np.complex64 else dict(rtol=1e-12, atol=1e-12)
+
+    def host(result):
+        return tuple(host(a) for a in result) if isinstance(result, tuple) else cp.asnumpy(cp.asarray(result))
+
+    for fn, args in calls:
+        fused = host(fn(*[cp.asarray(a) if isinstance(a, np.ndarray) else a for a in args]))
+        kernels.cuda_kernels = False
+        try:
+            plain = host(fn(*[cp.asarray(a) if isinstance(a, np.ndarray) else a for a in args]))
+        finally:
+            kernels.cuda_kernels = True
+        on_cpu = fn(*[a.copy() if isinstance(a, np.ndarray) else a for a in args])
+        for a, b, h in zip(*(v if isinstance(v, tuple) else (v,) for v in (fused, plain, on_cpu))):
+            np.testing.assert_allclose(a, b, **tol, err_msg=fn.__name__)
+            np.testing.assert_allclose(a, np.asarray(h), **tol, err_msg=fn.__name__)
+        assert type(fused) is type(plain)

@@ -6,8 +6,12 @@ once. NumPy evaluates ``(f - y) * mask`` and its sum of squares as four passes w
 temporaries; at 1024^2 and above each pass costs as much as a fifth of an FFT, and an iteration
 had about thirty of them (issue #31). The compiled loops accumulate sums in float64, as
 :func:`pwf_dask.backend.inner` does, so they agree with the NumPy expressions to float32
-rounding (``tests/test_kernels.py``). CuPy fuses its own element-wise expressions; it gets the
-array-module form.
+rounding (``tests/test_kernels.py``). On a CUDA device the same loops are CuPy element-wise
+and reduction kernels (:data:`_CUDA_KERNELS`, compiled on first use): CuPy runs each NumPy
+operation as its own kernel, so ``(f - y) * mask`` and its sum of squares cost four launches and
+four memory passes there too, and the launches, not the bandwidth, bound an iteration below
+about 1024^2 (issue #31: 1.8 ms at 512^2 against a 0.03 ms FFT on an H100). The CPU emulator
+of CuPy (``tests/emulated_cupy.py``) has no kernels: it runs the array-module form.
 
 Each function names the paper's quantity it computes:
 
@@ -59,6 +63,35 @@ def _jit(name: str):
 
 def _cpu(*arrays) -> bool:
     return all(isinstance(a, np.ndarray) and a.flags.c_contiguous for a in arrays) and _numba() is not None
+
+
+#: whether CuPy arrays go through the CUDA kernels below (False: the array-module form, as the
+#: CPU emulator runs it; the iteration bench and the tests compare the two)
+cuda_kernels = True
+_CUDA_COMPILED: dict = {}
+
+
+def _cuda(*arrays):
+    """The CuPy module where every array is a CuPy array of a real CUDA device and the kernels
+    are on, else None."""
+    if not cuda_kernels or any(isinstance(a, np.ndarray) for a in arrays):
+        return None
+    xp = get_array_module(*arrays)
+    return xp if xp is not np and hasattr(xp, "ElementwiseKernel") else None
+
+
+def _cuda_kernel(xp, name: str):
+    """The CUDA kernel ``name`` of :data:`_CUDA_KERNELS`, built once per process. Complex
+    operands are CuPy's ``complex<float|double>``; sums are accumulated in double, as the numba
+    loops do."""
+    if name not in _CUDA_COMPILED:
+        kind, *spec = _CUDA_KERNELS[name]
+        if kind == "map":
+            kernel = xp.ElementwiseKernel(*spec, name=f"pwf_{name}")
+        else:
+            kernel = xp.ReductionKernel(*spec, name=f"pwf_{name}", reduce_type="double")
+        _CUDA_COMPILED[name] = kernel
+    return _CUDA_COMPILED[name]
 
 
 # --- the compiled loops: flat, contiguous operands --------------------------------------------
@@ -141,6 +174,36 @@ def _momentum_loop(phi, phi_prev, beta, out):
         out[i] = p + beta * (p - phi_prev[i])
 
 
+#: the loops above as CUDA kernels: ("map", in, out, body) for ``ElementwiseKernel`` or
+#: ("sum", in, out, map_expr, reduce_expr, post_map_expr, identity) for ``ReductionKernel``
+_CUDA_KERNELS = {
+    "intensity": ("map", "T v", "R power", "power = v.real() * v.real() + v.imag() * v.imag()"),
+    "residual_masked": ("map", "T f, T y, M mask", "T e", "e = (f - y) * static_cast<T>(mask)"),
+    "sum_sq": ("sum", "T e", "float64 total", "double(e) * double(e)", "a + b", "total = a", "0"),
+    "times_conj": ("map", "T x", "T c", "c = c * conj(x)"),
+    "weighted_power": (
+        "sum",
+        "T z, R w",
+        "float64 total",
+        "double(w) * (double(z.real()) * z.real() + double(z.imag()) * z.imag())",
+        "a + b",
+        "total = a",
+        "0",
+    ),
+    "descent": ("map", "T psi, T d, R eta", "T phi", "phi = psi - eta * d"),
+    # Re<d, phi - phi_prev>
+    "uphill": (
+        "sum",
+        "T d, T phi, T prev",
+        "float64 total",
+        "double(d.real()) * (phi.real() - prev.real()) + double(d.imag()) * (phi.imag() - prev.imag())",
+        "a + b",
+        "total = a",
+        "0",
+    ),
+    "momentum": ("map", "T phi, T prev, R beta", "T point", "point = phi + beta * (phi - prev)"),
+}
+
 _LOOPS = {
     "intensity": _intensity_loop,
     "residual": _residual_loop,
@@ -167,6 +230,11 @@ def intensity(v):
         out = np.empty(v.shape, dtype=v.real.dtype)
         _jit("intensity")(*_flat(v, out))
         return out
+    xp = _cuda(v)
+    if xp is not None:
+        out = xp.empty(v.shape, dtype=v.real.dtype)
+        _cuda_kernel(xp, "intensity")(v, out)
+        return out
     xp = get_array_module(v)
     out = xp.square(v.real)
     out += xp.square(v.imag)
@@ -183,6 +251,10 @@ def residual_and_loss(f, y, mask=None):
         else:
             loss = _jit("residual_masked")(*_flat(f, y, mask.astype(f.dtype, copy=False), out))
         return out, float(loss)
+    xp = _cuda(f, y)
+    if xp is not None and f.dtype == y.dtype:
+        r = f - y if mask is None else _cuda_kernel(xp, "residual_masked")(f, y, mask)
+        return r, float(_cuda_kernel(xp, "sum_sq")(r))
     xp = get_array_module(f)
     r = f - y
     if mask is not None:
@@ -195,6 +267,10 @@ def times_conj(c, x):
     if _cpu(c, x) and c.dtype == x.dtype:
         _jit("times_conj")(*_flat(c, x))
         return c
+    xp = _cuda(c, x)
+    if xp is not None and c.dtype == x.dtype:
+        _cuda_kernel(xp, "times_conj")(x, c)
+        return c
     xp = get_array_module(c)
     c *= xp.conj(x)
     return c
@@ -204,6 +280,9 @@ def weighted_power(a, w) -> float:
     """sum w |a|^2 (w real, a's shape), in float64."""
     if _cpu(a, w) and a.shape == w.shape:
         return float(_jit("weighted_power")(*_flat(a, w)))
+    xp = _cuda(a, w)
+    if xp is not None and a.shape == w.shape:
+        return float(_cuda_kernel(xp, "weighted_power")(a, w))
     xp = get_array_module(a)
     power = xp.square(a.real) + xp.square(a.imag)
     power *= w
@@ -237,6 +316,10 @@ def descent_point(psi, d, phi_prev, eta: float):
         out = np.empty_like(psi)
         uphill = _jit("descent")(*_flat(psi, d, phi_prev), psi.real.dtype.type(eta), _flat(out)[0])
         return out, float(uphill)
+    xp = _cuda(psi, d, phi_prev)
+    if xp is not None and psi.dtype == d.dtype == phi_prev.dtype:
+        phi = _cuda_kernel(xp, "descent")(psi, d, psi.real.dtype.type(eta))
+        return phi, float(_cuda_kernel(xp, "uphill")(d, phi, phi_prev))
     from pwf_dask.backend import inner
 
     phi = d * (-eta)
@@ -250,6 +333,9 @@ def momentum_point(phi, phi_prev, beta: float):
         out = np.empty_like(phi)
         _jit("momentum")(*_flat(phi, phi_prev), phi.real.dtype.type(beta), _flat(out)[0])
         return out
+    xp = _cuda(phi, phi_prev)
+    if xp is not None and phi.dtype == phi_prev.dtype:
+        return _cuda_kernel(xp, "momentum")(phi, phi_prev, phi.real.dtype.type(beta))
     out = phi - phi_prev
     out *= beta
     out += phi

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from pwf_dask.backend import FFT, abs2, complex_exp, inner
+from pwf_dask.backend import FFT, complex_exp, inner
 from pwf_dask.physics import optics
 from pwf_dask.pwf import kernels
 from pwf_dask.pwf.model import (
@@ -101,7 +101,7 @@ def physical_model(psi, model: PWFModel) -> Evaluation:
         x = complex_exp(interpolate_field(psi, fine, fft), fft.workers)
         a = x if model.kernel1 is None else _propagate(x, model.kernel1, fft, overwrite=False)
         v = _propagate(model.t * a, model.kernel2, fft, overwrite=True)
-        spec_i = _crop_spectrum(fft.rfft2(abs2(v)), model.shape, half=True)
+        spec_i = _crop_spectrum(fft.rfft2(kernels.intensity(v)), model.shape, half=True)
         if model.otf is not None:
             spec_i *= model.otf
         f = fft.irfft2(spec_i, s=model.shape, overwrite=True)
