@@ -8,7 +8,9 @@ GPU, so that a Dask worker pinned to N cores never spawns more FFT threads than 
 
 from __future__ import annotations
 
+import contextlib
 import os
+import threading
 from dataclasses import dataclass
 from functools import cache
 from types import ModuleType
@@ -59,6 +61,38 @@ def to_numpy(a: Any) -> np.ndarray:
     if type(a).__module__.startswith("cupy"):
         return a.get()
     return np.asarray(a)
+
+
+#: whether each thread's device work runs on a CUDA stream of its own (:func:`task_stream`);
+#: False: every thread on CuPy's null stream (the iteration bench and tests compare the two)
+task_streams = True
+_THREAD_STREAMS = threading.local()
+
+
+def task_stream(xp):
+    """The calling thread's own CUDA stream, to enter for one task's device work; a context
+    that does nothing on NumPy.
+
+    Tasks that share one GPU from a worker's threads (``--device gpu``) otherwise all run on
+    the null stream, where each kernel waits for every other thread's and each host round trip
+    (the solver's J, its stop statistics) drains the GPU of all tasks at once. The stream is
+    made once per thread and device and kept: CuPy's memory pool gives a freed block again only
+    to the stream that freed it. It synchronizes with the null stream, so arrays made there
+    before are complete when a task reads them.
+    """
+    if xp is np or not task_streams:
+        return contextlib.nullcontext()
+    streams = _THREAD_STREAMS.__dict__.setdefault("streams", {})
+    device = xp.cuda.Device().id
+    if device not in streams:
+        streams[device] = xp.cuda.Stream(non_blocking=False)
+    return streams[device]
+
+
+def synchronize(xp) -> None:
+    """Wait for the current stream's work (device arrays that other threads' streams will read)."""
+    if xp is not np:
+        xp.cuda.get_current_stream().synchronize()
 
 
 def default_fft_workers() -> int:

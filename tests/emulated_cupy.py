@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import operator
 import sys
+import threading
 import types
 from contextlib import contextmanager
 
@@ -279,8 +280,24 @@ def _module() -> types.ModuleType:
     cp.linalg = linalg
 
     class _Stream:
+        """A stream is a context (the current stream of its thread) with a synchronize."""
+
+        def __init__(self, non_blocking: bool = False):
+            self.non_blocking = non_blocking
+
+        def __enter__(self):
+            _current.stack = [*getattr(_current, "stack", []), self]
+            return self
+
+        def __exit__(self, *exc):
+            _current.stack = _current.stack[:-1]
+            return False
+
         def synchronize(self):
             pass
+
+    _current = threading.local()
+    null = _Stream()
 
     class _Device:
         def __init__(self, device_id: int = 0):
@@ -301,7 +318,9 @@ def _module() -> types.ModuleType:
         getDeviceProperties=lambda device_id: {"name": b"emulated CuPy (NumPy on the CPU)"},
     )
     cuda.Device = _Device
-    cuda.Stream = types.SimpleNamespace(null=_Stream())
+    _Stream.null = null
+    cuda.Stream = _Stream
+    cuda.get_current_stream = lambda: (getattr(_current, "stack", None) or [null])[-1]
     cp.cuda = cuda
     return cp
 

@@ -98,3 +98,29 @@ def test_the_library_is_chosen_by_name_or_environment(monkeypatch):
     assert FFT.for_module(np, library="auto").library == "scipy"
     with pytest.raises(RuntimeError, match="mkl_fft does not import here"):
         FFT.for_module(np, library="mkl")
+
+
+@pytest.mark.gpu
+def test_each_thread_keeps_its_own_stream(cupy):
+    """backend.task_stream: one stream per thread (and device), the same for each of its tasks,
+    current inside the block; nothing on NumPy or with task_streams off."""
+    import contextlib
+    import threading
+
+    assert isinstance(backend.task_stream(np), contextlib.nullcontext)
+    mine = backend.task_stream(cupy)
+    assert backend.task_stream(cupy) is mine
+    with mine:
+        assert cupy.cuda.get_current_stream() is mine
+        backend.synchronize(cupy)
+    assert cupy.cuda.get_current_stream() is not mine
+    other = []
+    thread = threading.Thread(target=lambda: other.append(backend.task_stream(cupy)))
+    thread.start()
+    thread.join()
+    assert other[0] is not mine
+    backend.task_streams = False
+    try:
+        assert isinstance(backend.task_stream(cupy), contextlib.nullcontext)
+    finally:
+        backend.task_streams = True

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from pwf_dask import __version__, calibration
-from pwf_dask.backend import resolve_device, to_numpy
+from pwf_dask.backend import resolve_device, synchronize, task_stream, to_numpy
 from pwf_dask.baselines.tracking import MIN_POSITIONS
 from pwf_dask.options import DEFAULTS, check_option_names
 from pwf_dask.physics.detector import check_threshold, repair_outliers, saturated_pixels
@@ -282,6 +282,7 @@ def _position_diffuser(scan_path, recon_path, p, reference, frames, coherence, o
                     resolve_device(device).asarray(stored),
                     _stored_model(recon_path, p, frames[0].attrs, options),
                 )
+            synchronize(resolve_device(device))  # other threads' streams will read t
             _DIFFUSERS[key] = (t, model)
         return _DIFFUSERS[key]
 
@@ -292,11 +293,18 @@ def _retrieve_task(item, *, scan_path, recon_path, options, device, fft_workers,
     ``start_from`` (position, angle): PWF starts from that projection's stored result
     (:func:`angle_chains`); None: from zero, as the paper does.
     """
+    t0 = time.perf_counter()
+    # the task's device work on its thread's own stream; the host copies in _retrieved wait for it
+    with task_stream(resolve_device(device)):
+        res = _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, coherence, start_from)
+        return _retrieved(item, recon_path, t0, res)
+
+
+def _retrieved(item, recon_path, t0: float, res):
+    """Write one retrieved projection's chunks, then its diagnostics; the iterations last."""
     import zarr
 
     p, a = item
-    t0 = time.perf_counter()
-    res = _retrieve_item(item, scan_path, recon_path, options, device, fft_workers, coherence, start_from)
     out = zarr.open_group(str(recon_path), mode="r+", use_consolidated=False)
     out["phase"][p, a] = to_numpy(res.phase).astype(np.float32)
     out["attenuation"][p, a] = to_numpy(res.attenuation).astype(np.float32)
