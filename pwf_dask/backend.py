@@ -83,10 +83,10 @@ def task_stream(xp):
     if xp is np or not task_streams:
         return contextlib.nullcontext()
     streams = _THREAD_STREAMS.__dict__.setdefault("streams", {})
-    device = xp.cuda.Device().id
-    if device not in streams:
-        streams[device] = xp.cuda.Stream(non_blocking=False)
-    return streams[device]
+    key = (id(xp), xp.cuda.Device().id)  # the module too: tests run CuPy and its CPU emulator
+    if key not in streams:
+        streams[key] = xp.cuda.Stream(non_blocking=False)
+    return streams[key]
 
 
 def synchronize(xp) -> None:

@@ -28,6 +28,7 @@ Each function names the paper's quantity it computes:
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import numpy as np
@@ -65,9 +66,10 @@ def _cpu(*arrays) -> bool:
     return all(isinstance(a, np.ndarray) and a.flags.c_contiguous for a in arrays) and _numba() is not None
 
 
-#: whether CuPy arrays go through the CUDA kernels below (False: the array-module form, as the
-#: CPU emulator runs it; the iteration bench and the tests compare the two)
-cuda_kernels = True
+#: whether CuPy arrays go through the CUDA kernels below (False, or ``PWF_DASK_CUDA_KERNELS=0``:
+#: the array-module form, as the CPU emulator runs it; the iteration bench and the tests compare
+#: the two)
+cuda_kernels = os.environ.get("PWF_DASK_CUDA_KERNELS", "1") != "0"
 _CUDA_COMPILED: dict = {}
 
 
@@ -179,26 +181,29 @@ def _momentum_loop(phi, phi_prev, beta, out):
 _CUDA_KERNELS = {
     "intensity": ("map", "T v", "R power", "power = v.real() * v.real() + v.imag() * v.imag()"),
     "residual_masked": ("map", "T f, T y, M mask", "T e", "e = (f - y) * static_cast<T>(mask)"),
-    "sum_sq": ("sum", "T e", "float64 total", "double(e) * double(e)", "a + b", "total = a", "0"),
+    # a reduction's operand names must not occur inside other words of its expressions: CuPy's
+    # CUB path renames a single operand by plain text replacement ("e" of "double" too)
+    "sum_sq": ("sum", "T sq_x", "float64 sq_total", "double(sq_x) * double(sq_x)", "a + b", "sq_total = a", "0"),
     "times_conj": ("map", "T x", "T c", "c = c * conj(x)"),
     "weighted_power": (
         "sum",
-        "T z, R w",
-        "float64 total",
-        "double(w) * (double(z.real()) * z.real() + double(z.imag()) * z.imag())",
+        "T wp_z, R wp_w",
+        "float64 wp_total",
+        "double(wp_w) * (double(wp_z.real()) * wp_z.real() + double(wp_z.imag()) * wp_z.imag())",
         "a + b",
-        "total = a",
+        "wp_total = a",
         "0",
     ),
     "descent": ("map", "T psi, T d, R eta", "T phi", "phi = psi - eta * d"),
     # Re<d, phi - phi_prev>
     "uphill": (
         "sum",
-        "T d, T phi, T prev",
-        "float64 total",
-        "double(d.real()) * (phi.real() - prev.real()) + double(d.imag()) * (phi.imag() - prev.imag())",
+        "T up_d, T up_phi, T up_prev",
+        "float64 up_total",
+        "double(up_d.real()) * (up_phi.real() - up_prev.real())"
+        " + double(up_d.imag()) * (up_phi.imag() - up_prev.imag())",
         "a + b",
-        "total = a",
+        "up_total = a",
         "0",
     ),
     "momentum": ("map", "T phi, T prev, R beta", "T point", "point = phi + beta * (phi - prev)"),
