@@ -144,7 +144,8 @@ def test_the_iteration_on_mkl_transforms_gives_the_pocketfft_direction():
 def test_each_cuda_kernel_gives_the_cupy_expression(cdtype):
     """On a CUDA device each pass runs as one CuPy kernel (``kernels._CUDA_KERNELS``): it gives
     the CuPy expressions it replaces (``kernels.cuda_kernels = False``) and the NumPy loops, to
-    the precision's rounding; the CPU emulator has no kernels, so this runs on a device only."""
+    the precision's rounding; the CPU emulator has no kernels, so this runs on a device only (with the kernels on,
+    whatever ``PWF_DASK_CUDA_KERNELS`` says)."""
     cp = backend.cupy_or_none()
     if cp is None:
         pytest.skip("CuPy with a CUDA device is not available")
@@ -173,13 +174,15 @@ def test_each_cuda_kernel_gives_the_cupy_expression(cdtype):
     def host(result):
         return tuple(host(a) for a in result) if isinstance(result, tuple) else cp.asnumpy(cp.asarray(result))
 
-    for fn, args in calls:
-        fused = host(fn(*[cp.asarray(a) if isinstance(a, np.ndarray) else a for a in args]))
-        kernels.cuda_kernels = False
+    def on_device(fn, args, fused: bool):
+        saved, kernels.cuda_kernels = kernels.cuda_kernels, fused
         try:
-            plain = host(fn(*[cp.asarray(a) if isinstance(a, np.ndarray) else a for a in args]))
+            return host(fn(*[cp.asarray(a) if isinstance(a, np.ndarray) else a for a in args]))
         finally:
-            kernels.cuda_kernels = True
+            kernels.cuda_kernels = saved
+
+    for fn, args in calls:
+        fused, plain = on_device(fn, args, True), on_device(fn, args, False)
         on_cpu = fn(*[a.copy() if isinstance(a, np.ndarray) else a for a in args])
         for a, b, h in zip(*(v if isinstance(v, tuple) else (v,) for v in (fused, plain, on_cpu))):
             np.testing.assert_allclose(a, b, **tol, err_msg=fn.__name__)

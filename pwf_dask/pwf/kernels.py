@@ -6,8 +6,9 @@ once. NumPy evaluates ``(f - y) * mask`` and its sum of squares as four passes w
 temporaries; at 1024^2 and above each pass costs as much as a fifth of an FFT, and an iteration
 had about thirty of them (issue #31). The compiled loops accumulate sums in float64, as
 :func:`pwf_dask.backend.inner` does, so they agree with the NumPy expressions to float32
-rounding (``tests/test_kernels.py``). On a CUDA device the same loops are CuPy element-wise
-and reduction kernels (:data:`_CUDA_KERNELS`, compiled on first use): CuPy runs each NumPy
+rounding (``tests/test_kernels.py``). On a CUDA device the same loops are written as CuPy
+element-wise and reduction kernels (:data:`_CUDA_KERNELS`, compiled on first use; opt-in with
+``PWF_DASK_CUDA_KERNELS=1`` until verified on a device, :data:`cuda_kernels`): CuPy runs each NumPy
 operation as its own kernel, so ``(f - y) * mask`` and its sum of squares cost four launches and
 four memory passes there too, and the launches, not the bandwidth, bound an iteration below
 about 1024^2 (issue #31: 1.8 ms at 512^2 against a 0.03 ms FFT on an H100). The CPU emulator
@@ -66,10 +67,13 @@ def _cpu(*arrays) -> bool:
     return all(isinstance(a, np.ndarray) and a.flags.c_contiguous for a in arrays) and _numba() is not None
 
 
-#: whether CuPy arrays go through the CUDA kernels below (False, or ``PWF_DASK_CUDA_KERNELS=0``:
-#: the array-module form, as the CPU emulator runs it; the iteration bench and the tests compare
-#: the two)
-cuda_kernels = os.environ.get("PWF_DASK_CUDA_KERNELS", "1") != "0"
+#: whether CuPy arrays go through the CUDA kernels below (``PWF_DASK_CUDA_KERNELS=1``). Off by
+#: default until a device run passes ``tests/test_kernels.py`` with them: on an H100 (session 42)
+#: intensity, the masked residual, its sum, times_conj and weighted_power compiled and ran inside
+#: retrievals; descent failed (CuPy infers no type placeholder from a scalar), was rewritten after
+#: the last device call, and it, uphill and momentum have not run on a device. Off: the
+#: array-module form, as the CPU emulator runs it
+cuda_kernels = os.environ.get("PWF_DASK_CUDA_KERNELS", "0") == "1"
 _CUDA_COMPILED: dict = {}
 
 
@@ -194,7 +198,8 @@ _CUDA_KERNELS = {
         "wp_total = a",
         "0",
     ),
-    "descent": ("map", "T psi, T d, R eta", "T phi", "phi = psi - eta * d"),
+    # scalars are typed by the arrays (T): CuPy infers no placeholder from a scalar alone
+    "descent": ("map", "T psi, T d, T eta", "T phi", "phi = psi - eta * d"),
     # Re<d, phi - phi_prev>
     "uphill": (
         "sum",
@@ -206,7 +211,7 @@ _CUDA_KERNELS = {
         "up_total = a",
         "0",
     ),
-    "momentum": ("map", "T phi, T prev, R beta", "T point", "point = phi + beta * (phi - prev)"),
+    "momentum": ("map", "T phi, T prev, T beta", "T point", "point = phi + beta * (phi - prev)"),
 }
 
 _LOOPS = {
@@ -323,7 +328,7 @@ def descent_point(psi, d, phi_prev, eta: float):
         return out, float(uphill)
     xp = _cuda(psi, d, phi_prev)
     if xp is not None and psi.dtype == d.dtype == phi_prev.dtype:
-        phi = _cuda_kernel(xp, "descent")(psi, d, psi.real.dtype.type(eta))
+        phi = _cuda_kernel(xp, "descent")(psi, d, psi.dtype.type(eta))
         return phi, float(_cuda_kernel(xp, "uphill")(d, phi, phi_prev))
     from pwf_dask.backend import inner
 
@@ -340,7 +345,7 @@ def momentum_point(phi, phi_prev, beta: float):
         return out
     xp = _cuda(phi, phi_prev)
     if xp is not None and phi.dtype == phi_prev.dtype:
-        return _cuda_kernel(xp, "momentum")(phi, phi_prev, phi.real.dtype.type(beta))
+        return _cuda_kernel(xp, "momentum")(phi, phi_prev, phi.dtype.type(beta))
     out = phi - phi_prev
     out *= beta
     out += phi
