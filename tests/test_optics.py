@@ -65,6 +65,24 @@ def test_kernel_has_no_single_precision_cancellation():
     assert np.abs(k - fresnel).max() < 1e-5
 
 
+@pytest.mark.gpu
+def test_kernel_is_built_on_the_device_as_exp_i_2pi_w_minus_k_l(cupy):
+    """Q = exp(i 2 pi (w - 1/lambda) L) (Algorithm S2), built on the arrays' device: the same
+    values as the closed form in complex128 on the host, evanescent waves (q > 1/lambda, here
+    on a grid of 0.05 nm pixels) zeroed."""
+    wl = optics.wavelength_m(10_000)
+    for pixel_m, dtype in ((0.65e-6, np.complex64), (5e-11, np.complex128)):
+        k = optics.angular_spectrum_kernel((40, 50), pixel_m, wl, 0.02, cupy, dtype)
+        assert type(k).__module__.startswith(cupy.__name__) and k.dtype == dtype
+        v, u = optics.frequency_grid((40, 50), pixel_m)
+        q2 = u**2 + v**2
+        w = np.sqrt(np.maximum(1 / wl**2 - q2, 0))
+        closed = np.where(q2 < 1 / wl**2, np.exp(2j * np.pi * (w - 1 / wl) * 0.02), 0)
+        # w - 1/lambda cancels in the closed form (1/lambda = 8e9 / m): 1e-7 rad of rounding there
+        np.testing.assert_allclose(cupy.asnumpy(k), closed, atol=1e-6)
+        assert (pixel_m > 1e-9) or (cupy.asnumpy(k)[q2 >= 1 / wl**2] == 0).all()
+
+
 def test_iotf_is_fourier_transform_of_ipsf():
     n, p = 256, 0.25e-6
     xc, yc = 3.47e-6, 4.31e-6
