@@ -214,7 +214,7 @@ def _estimate(args) -> int:
     )
     ny, nx = sizes["shape"]
     print(f"{args.scan}: {sizes['positions']} position(s) x {sizes['angles']} angles x {ny} x {nx} px")
-    print("\n".join(format_estimate(stages, args.workers, machine_memory_mb())))
+    print("\n".join(format_estimate(stages, args.workers, machine_memory_mb(), sizes["gpu_task_mb"])))
     return 0
 
 

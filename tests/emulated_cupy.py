@@ -300,6 +300,9 @@ def _module() -> types.ModuleType:
     null = _Stream()
 
     class _Device:
+        #: (free, total) bytes: a 16 GB card; tests set their own
+        mem_info = (16 * 2**30, 16 * 2**30)
+
         def __init__(self, device_id: int = 0):
             self.id = device_id
 
@@ -319,6 +322,24 @@ def _module() -> types.ModuleType:
     )
     cuda.Device = _Device
     _Stream.null = null
+
+    class _MemoryPool:
+        """CuPy's pool of device memory: the host allocator holds nothing back."""
+
+        def free_bytes(self):
+            return 0
+
+        def used_bytes(self):
+            return 0
+
+        def total_bytes(self):
+            return 0
+
+        def free_all_blocks(self):
+            pass
+
+    pool = _MemoryPool()
+    cp.get_default_memory_pool = lambda: pool
     cuda.Stream = _Stream
     cuda.get_current_stream = lambda: (getattr(_current, "stack", None) or [null])[-1]
     cp.cuda = cuda

@@ -65,6 +65,10 @@ def test_estimate_command_prints_each_stage_and_warns_when_a_stage_cannot_fit(tm
         assert f"\n{stage}" in out
     assert "801 angles x 2160 x 2560" in out and "central 64 rows" in out
     assert "warning" not in out
+    # a full frame's retrieval on a GPU: 3.4 GB measured on an H100 (GPU_RETRIEVAL_MEMORY_FACTOR)
+    task_gb = estimate.retrieval_device_mb((2160, 2560)) / 1e3
+    assert 3.0 < task_gb < 4.5
+    assert f"{task_gb:.1f} GB of device memory per task" in out and "on 24 GB" in out
     monkeypatch.setattr(estimate, "machine_memory_mb", lambda: 8e3)
     assert cli.main(["estimate", str(scan), "--workers", "8"]) == 0
     assert "warning: fsc needs" in capsys.readouterr().out

@@ -111,6 +111,47 @@ def test_gpu_device_gives_the_cpu_result(cupy, tiny_scan, tmp_path):
         np.testing.assert_allclose(b[name].values, a[name].values, atol=1e-4 * scale, err_msg=name)
 
 
+@pytest.mark.gpu
+def test_gpu_threads_are_capped_by_the_device_memory(cupy, tiny_scan, tmp_path, monkeypatch, capsys):
+    """``--device gpu`` on the threaded scheduler runs no more tasks at once than fit in the
+    GPU's free memory (estimate.retrieval_device_mb each), says so, and writes the store the
+    uncapped run writes; the scheduler's own thread count is left as it was."""
+    from pwf_dask.pipeline import estimate
+    from pwf_dask.pipeline.cluster import Runner
+
+    run = {**FAST, "angle_chain": 1}
+    assert workflow._device_free_bytes(cupy) > 0
+    wide, narrow = tmp_path / "wide.zarr", tmp_path / "narrow.zarr"
+    with Runner("threads", workers=4) as runner:
+        workflow.retrieve_scan(tiny_scan, wide, device="gpu", runner=runner, **run)
+    task_mb = estimate.retrieval_device_mb((32, 64), 1.5, positions=2)  # tiny_scan's frame, the "auto" grid
+    running, most = [0], [0]
+    lock = threading.Lock()
+    original = workflow._retrieve_task
+
+    def counted(item, **kw):
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        try:
+            time.sleep(0.05)
+            return original(item, **kw)
+        finally:
+            with lock:
+                running[0] -= 1
+
+    monkeypatch.setattr(workflow, "_retrieve_task", counted)
+    monkeypatch.setattr(workflow, "_device_free_bytes", lambda xp: int(2.5 * task_mb * 1e6 / estimate.GPU_MEMORY_SHARE))
+    capsys.readouterr()
+    with Runner("threads", workers=4) as runner:
+        workflow.retrieve_scan(tiny_scan, narrow, device="gpu", runner=runner, **run)
+        assert runner.workers == 4
+    assert "retrieve: 2 projections at a time on the GPU" in capsys.readouterr().err
+    assert most[0] == 2
+    for name in ("phase", "attenuation"):
+        np.testing.assert_array_equal(xr.open_zarr(narrow)[name].values, xr.open_zarr(wide)[name].values)
+
+
 def test_resume_computes_only_missing(tiny_scan, tmp_path, monkeypatch):
     full = tmp_path / "full.zarr"
     workflow.retrieve_scan(tiny_scan, full, **FAST)

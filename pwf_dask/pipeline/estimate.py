@@ -118,6 +118,28 @@ def retrieval_peak_mb(shape: tuple[int, int], field_upsample: float = 1, positio
     return RETRIEVAL_BASE_MB + (RETRIEVAL_BYTES_PER_PIXEL * pixels + extra + diffusers) / 1e6
 
 
+#: a retrieval's device memory over the host model's arrays (:func:`retrieval_peak_mb` less
+#: :data:`RETRIEVAL_BASE_MB`), measured as CuPy's pool after one ``retrieve_projection`` (diffuser
+#: fit included) on an H100 in session 42: 1.24 at 256^2, 1.27 at 1024^2, 1.72 at 2160 x 2560
+#: (1.31-1.62 on the 1.5x field grid), cuFFT's plans and the pool's rounding beside the arrays;
+#: the largest, rounded up (``benchmarks/results/memory_model_gpu.md``)
+GPU_RETRIEVAL_MEMORY_FACTOR = 1.75
+
+#: of a GPU's free memory, the share that concurrent retrieval tasks are planned to fill
+GPU_MEMORY_SHARE = 0.8
+
+
+def retrieval_device_mb(shape: tuple[int, int], field_upsample: float = 1, positions: int = 1, pad: int = 17) -> float:
+    """Device memory of one retrieval task on a GPU (MB), from the host model."""
+    host = retrieval_peak_mb(shape, field_upsample, positions, pad) - RETRIEVAL_BASE_MB
+    return GPU_RETRIEVAL_MEMORY_FACTOR * host
+
+
+def gpu_tasks_that_fit(task_mb: float, free_bytes: float) -> int:
+    """How many retrieval tasks of ``task_mb`` share a GPU with ``free_bytes`` free (at least one)."""
+    return max(1, int(GPU_MEMORY_SHARE * free_bytes / (task_mb * 1e6)))
+
+
 def tomo_peak_mb(n_angles: int, rows: int, nx: int, fbp: str = "backproject") -> float:
     sinogram = n_angles * rows * nx
     per_element, per_voxel = TOMO_BYTES[fbp]
@@ -194,14 +216,23 @@ def _fsc_stage(ny: int, nx: int, n_angles: int, n_positions: int, speeds: Speeds
     )
 
 
-def format_estimate(stages: list[StageEstimate], workers: int, memory_mb: float | None = None) -> list[str]:
-    """The lines ``pwf-dask estimate`` prints: a table, and a warning for a stage that cannot fit."""
+def format_estimate(
+    stages: list[StageEstimate], workers: int, memory_mb: float | None = None, gpu_task_mb: float | None = None
+) -> list[str]:
+    """The lines ``pwf-dask estimate`` prints: a table, a warning for a stage that cannot fit,
+    and (``gpu_task_mb``) a retrieval task's device memory on a GPU."""
     from pwf_dask.progress import format_seconds
 
     lines = [f"{'stage':<10}{'tasks':>8}{'peak memory per worker':>26}{f'time on {workers} worker(s)':>24}"]
     for s in stages:
         lines.append(f"{s.stage:<10}{s.tasks:>8}{s.peak_mb_per_worker / 1e3:>23.2f} GB{format_seconds(s.seconds):>24}")
     lines += [f"  {s.stage}: {s.note}" for s in stages if s.note]
+    if gpu_task_mb:
+        cards = ", ".join(f"{gpu_tasks_that_fit(gpu_task_mb, gb * 1e9)} on {gb} GB" for gb in (24, 80))
+        lines.append(
+            f"  retrieve on a GPU (--device gpu): {gpu_task_mb / 1e3:.1f} GB of device memory per task; "
+            f"tasks at a time: {cards}"
+        )
     if memory_mb:
         for s in stages:
             if s.peak_mb_per_worker > memory_mb:
@@ -246,4 +277,5 @@ def estimate_for_scan(
         speeds=speeds,
     )
     sizes = {"positions": info.n_positions, "angles": int(info.angles_deg.size), "shape": info.shape}
+    sizes["gpu_task_mb"] = retrieval_device_mb(info.shape, field_upsample, info.n_positions)
     return stages, sizes

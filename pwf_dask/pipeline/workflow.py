@@ -27,9 +27,11 @@ from pwf_dask.options import DEFAULTS, check_option_names
 from pwf_dask.physics.detector import check_threshold, repair_outliers, saturated_pixels
 from pwf_dask.physics.geometry import Geometry
 from pwf_dask.physics.optics import wavelength_m
+from pwf_dask.pipeline import estimate
 from pwf_dask.pipeline.cluster import Runner, check_scheduler, worker_fft_threads
 from pwf_dask.pwf.solver import PAPER_ALPHA
 from pwf_dask.retrieval import (
+    DIFFUSER_FIELD_UPSAMPLE,
     METHODS,
     check_diffuser_drift,
     check_field_upsample,
@@ -528,11 +530,37 @@ def retrieve_scan(
     opts.update(precision=precision, outlier_sigma=outlier_sigma, **options)
     own = runner is None
     runner = runner or Runner(scheduler)  # a bad scheduler fails here, before anything is written
+    threads = runner.workers
     try:
+        runner.workers = _gpu_threads(runner, device, info, opts)
         return _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, coherence, angle_chain)
     finally:
+        runner.workers = threads
         if own:
             runner.close()
+
+
+def _device_free_bytes(xp) -> int:
+    """Free memory of the current GPU, CuPy's pool not counted as used."""
+    return int(xp.cuda.Device().mem_info[0]) + int(xp.get_default_memory_pool().free_bytes())
+
+
+def _gpu_threads(runner: Runner, device: str, info, opts: dict) -> int | None:
+    """The threads that share this host's GPU (``--device gpu`` on a local scheduler): as many
+    as the scheduler runs, but no more than fit in the GPU's free memory
+    (:func:`estimate.gpu_tasks_that_fit`); a cluster's workers (dask-cuda) hold one GPU each."""
+    xp = resolve_device(device)
+    if xp is np or runner.client is not None:
+        return runner.workers
+    field = opts.get("field_upsample", "auto")
+    field = DIFFUSER_FIELD_UPSAMPLE if field == "auto" else float(field)
+    task_mb = estimate.retrieval_device_mb(info.shape, field, positions=info.n_positions)
+    free = _device_free_bytes(xp)
+    fit = estimate.gpu_tasks_that_fit(task_mb, free)
+    if fit >= runner.concurrency:
+        return runner.workers
+    _say(f"retrieve: {fit} projections at a time on the GPU ({task_mb:.0f} MB each, {free / 1e9:.1f} GB free)")
+    return fit
 
 
 def _checked_scan_options(

@@ -1,0 +1,172 @@
+"""Device checks beside ``pwf-dask bench iteration --device gpu`` (run where a CUDA GPU is):
+
+- ``memory``: a retrieval's device memory (CuPy's pool after one ``retrieve_projection``,
+  defaults, 20 iterations) at 256^2 to 2160 x 2560 on the detector and the 1.5x field grid,
+  against the host model (``pwf_dask.pipeline.estimate``);
+- ``threads``: full-frame projections retrieved one after another against as many threads
+  sharing the GPU, each on its own stream (``backend.task_stream``) and all on the null stream;
+- ``strip ANGLES``: a 32 x 2560 paper-optics scan of ANGLES angles through ``retrieve_scan``
+  on the GPU, with and without the task streams: iterations per projection and wall time.
+
+``python -m benchmarks.gpu_checks OUT_DIR memory|threads|strip [ANGLES]``: one JSON line per row
+on stdout, and ``OUT_DIR/<part>.json``. Session 42's rows: ``benchmarks/results/memory_model_gpu.md``
+and docs/benchmarks.md ("On a GPU").
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+from scipy import ndimage
+
+from pwf_dask import backend, retrieve_projection
+from pwf_dask.pipeline import estimate
+
+GEOMETRY = dict(
+    energy_eV=10_000,
+    pixel_size_m=0.65e-6,
+    sample_diffuser_distance_m=3e-3,
+    diffuser_detector_distance_m=0.02,
+    coherence_length_x_m=3.47e-6,
+    coherence_length_y_m=4.31e-6,
+)
+
+
+def frames(shape, rng):
+    """A speckle-like reference (smoothed noise, positive) and the sample: it shifted by a
+    fraction of a pixel under an absorbing disc."""
+    ref = ndimage.gaussian_filter(rng.random(shape), 1.5)
+    ref = np.clip(1.0 + 0.3 * (ref - ref.mean()) / ref.std(), 0.05, None)
+    yy, xx = np.mgrid[: shape[0], : shape[1]]
+    disc = np.clip(1 - ((yy - shape[0] / 2) ** 2 + (xx - shape[1] / 2) ** 2) / (0.3 * min(shape)) ** 2, 0, None)
+    sample = ndimage.shift(ref, (0.5, 0.4), order=1, mode="nearest") * np.exp(-0.2 * np.sqrt(disc))
+    return sample.astype(np.float32), ref.astype(np.float32)
+
+
+def memory_rows(cp, rng) -> list[dict]:
+    pool, rows = cp.get_default_memory_pool(), []
+    for shape in [(256, 256), (1024, 1024), (2160, 2560)]:
+        sample, ref = frames(shape, rng)
+        for field in (1, 1.5):
+            pool.free_all_blocks()
+            base = pool.total_bytes()
+            t0 = time.perf_counter()
+            res = retrieve_projection(
+                cp.asarray(sample), cp.asarray(ref), max_iter=20, tol=0, field_upsample=field, **GEOMETRY
+            )
+            phase = res.phase.get()
+            rows.append(
+                dict(
+                    shape=f"{shape[0]}x{shape[1]}",
+                    field_upsample=field,
+                    device_mb=(pool.total_bytes() - base) / 1e6,
+                    cpu_model_mb=estimate.retrieval_peak_mb(shape, field) - estimate.RETRIEVAL_BASE_MB,
+                    seconds=time.perf_counter() - t0,
+                    finite=bool(np.isfinite(phase).all()),
+                    diffuser_model=res.parameters.get("diffuser_model"),
+                )
+            )
+            print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def thread_rows(cp, rng, n: int = 3, iterations: int = 60) -> list[dict]:
+    sample, ref = frames((2160, 2560), rng)
+
+    def one(_):
+        with backend.task_stream(cp):
+            res = retrieve_projection(
+                cp.asarray(sample),
+                cp.asarray(ref),
+                max_iter=iterations,
+                tol=0,
+                diffuser_model="zero-phase",
+                **GEOMETRY,
+            )
+            return res.phase.get()
+
+    one(0)  # kernels compiled, FFT plans made
+    rows = []
+    for streams in (True, False):
+        backend.task_streams = streams
+        t0 = time.perf_counter()
+        alone = [one(k) for k in range(n)]
+        t_alone = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        with ThreadPoolExecutor(n) as pool:
+            shared = list(pool.map(one, range(n)))
+        t_shared = time.perf_counter() - t0
+        rows.append(
+            dict(
+                shape="2160x2560",
+                projections=n,
+                iterations=iterations,
+                streams=streams,
+                sequential_s=t_alone,
+                threads_s=t_shared,
+                gain=t_alone / t_shared,
+                max_phase_difference=max(float(np.abs(a - b).max()) for a, b in zip(alone, shared)),
+            )
+        )
+        print(json.dumps(rows[-1]), flush=True)
+    backend.task_streams = True
+    return rows
+
+
+def strip_rows(angles: int) -> list[dict]:
+    import zarr
+
+    from pwf_dask.pipeline.workflow import retrieve_scan
+    from pwf_dask.simulation import simulate_scan
+
+    scan = "/tmp/pwf_gpu_strip.zarr"
+    simulate_scan(scan, preset="paper", shape=(32, 2560), angles=angles, positions=1, seed=0, progress=False)
+    rows = []
+    for streams in (True, False):
+        backend.task_streams = streams
+        recon = f"/tmp/pwf_gpu_strip_{streams}.zarr"
+        t0 = time.perf_counter()
+        retrieve_scan(scan, recon, device="gpu")
+        g = zarr.open_group(recon, mode="r", use_consolidated=False)
+        its = g["iterations"][...].ravel()
+        rows.append(
+            dict(
+                angles=angles,
+                streams=streams,
+                wall_s=time.perf_counter() - t0,
+                retrieval_wall_s=g.attrs.get("retrieval_wall_s"),
+                iterations_median=float(np.median(its)),
+                iterations_mean=float(its.mean()),
+                iterations_max=int(its.max()),
+                converged=float(np.mean(g["converged"][...])),
+                iterations=its.tolist(),
+            )
+        )
+        print(json.dumps({k: v for k, v in rows[-1].items() if k != "iterations"}), flush=True)
+    backend.task_streams = True
+    return rows
+
+
+def main(argv=None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    out, part = argv[0], argv[1]
+    cp = backend.resolve_device("gpu")
+    rng = np.random.default_rng(0)
+    if part == "memory":
+        rows = memory_rows(cp, rng)
+    elif part == "threads":
+        rows = thread_rows(cp, rng)
+    elif part == "strip":
+        rows = strip_rows(int(argv[2]) if len(argv) > 2 else 101)
+    else:
+        raise SystemExit(f"unknown part {part!r}: memory, threads or strip")
+    with open(f"{out}/{part}.json", "w") as f:
+        json.dump(rows, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
