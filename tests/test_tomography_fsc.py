@@ -113,3 +113,58 @@ def test_fsc_criteria():
     assert hb[0] > hb[1] > 0.17
     with pytest.raises(ValueError):
         fsc.threshold("1/3", counts)
+
+
+def _truth_by_whole_volumes(phantom, y_m, v_m, u_m, energy_eV, supersample=2):
+    """refractive_index_volume as it was written before session 42: every sub-sample point of
+    the whole volume, the last bead containing it winning (the oracle of the test below)."""
+    from pwf_dask.physics.materials import delta_beta
+
+    du = abs(u_m[1] - u_m[0])
+    dy = abs(y_m[1] - y_m[0]) if y_m.size > 1 else du
+    off = (np.arange(supersample) + 0.5) / supersample - 0.5
+    dc, bc = delta_beta(phantom.cylinder_material, energy_eV)
+    delta = np.zeros((y_m.size, v_m.size, u_m.size))
+    beta = np.zeros_like(delta)
+    for oy in off:
+        for ov in off:
+            for ou in off:
+                yy, vv, uu = (
+                    (y_m + oy * dy)[:, None, None],
+                    (v_m + ov * du)[None, :, None],
+                    (u_m + ou * du)[None, None, :],
+                )
+                incyl = (
+                    (uu - phantom.cylinder_u_m) ** 2 + (vv - phantom.cylinder_v_m) ** 2
+                ) < phantom.cylinder_radius_m**2
+                d = np.broadcast_to(np.where(incyl, dc, 0.0), delta.shape).copy()
+                b = np.broadcast_to(np.where(incyl, bc, 0.0), delta.shape).copy()
+                for sp in phantom.spheres:
+                    ds, bs = delta_beta(sp.material, energy_eV)
+                    ins = ((uu - sp.u_m) ** 2 + (vv - sp.v_m) ** 2 + (yy - sp.y_m) ** 2) < sp.radius_m**2
+                    d, b = np.where(ins, ds, d), np.where(ins, bs, b)
+                delta += d
+                beta += b
+    return delta / supersample**3, beta / supersample**3
+
+
+@pytest.mark.parametrize("supersample", [1, 2, 3])
+def test_the_truth_volume_is_the_sum_over_every_sub_sample(supersample):
+    """simulation.refractive_index_volume sums the cylinder on one plane and the beads in their
+    boxes: bit for bit the sum over the whole volume's sub-samples, with beads that overlap
+    (the last wins), one cut by the volume's edge, one outside it, and a single slice."""
+    from dataclasses import replace
+
+    from pwf_dask.simulation import Sphere, default_phantom, refractive_index_volume
+
+    ph = default_phantom(60e-6, np.random.default_rng(3), n_beads=4, height_m=30e-6)
+    extra = (Sphere(0.0, 0.0, 0.0, 6e-6, "PMMA"), Sphere(3e-6, 1e-6, 2e-6, 5e-6), Sphere(0.0, 14e-6, 0.0, 4e-6))
+    ph = replace(ph, spheres=ph.spheres + extra + (Sphere(0.0, 90e-6, 0.0, 3e-6),))
+    p = 1e-6
+    u = (np.arange(64) - 31.5) * p
+    for y in ((np.arange(32) - 15.5) * p, np.array([1.3e-6])):
+        got = refractive_index_volume(ph, y, u, u, 12_000, supersample)
+        want = _truth_by_whole_volumes(ph, y, u, u, 12_000, supersample)
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+        assert np.ptp(got[0]) > 0
