@@ -64,7 +64,7 @@ def to_numpy(a: Any) -> np.ndarray:
 
 
 #: whether each thread's device work runs on a CUDA stream of its own (:func:`task_stream`);
-#: False: every thread on CuPy's null stream (the iteration bench and tests compare the two)
+#: False: every thread on CuPy's null stream (``benchmarks/gpu_checks.py`` times the two)
 task_streams = True
 _THREAD_STREAMS = threading.local()
 

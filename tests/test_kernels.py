@@ -73,27 +73,38 @@ def test_fused_passes_follow_the_definitions(arrays):
     assert uphill == pytest.approx(float(np.vdot(d.astype(complex), (phi - prev).astype(complex)).real), rel=1e-5)
 
 
-def test_the_solver_gives_the_unfused_direction_and_iterates():
-    """Issue #31: the fused iteration gives the reference direction (and 30 iterations the same
-    psi) to float32 tolerance, on a padded frame with L1 > 0 (mask, OTF, regularizer)."""
+def padded_problem(seed: int):
+    """A 64^2 frame padded by 9 px with L1 > 0 (mask, OTF, regularizer): t, y, a start psi,
+    and the model built on a given FFT."""
     n, pad = 64, 9
-    rng = np.random.default_rng(1)
+    rng = np.random.default_rng(seed)
     t = np.exp(0.3j * rng.normal(size=(n + 2 * pad, n + 2 * pad))).astype(np.complex64)
-    model = solver.build_model(
-        t,
-        frame_shape=(n, n),
-        pixel_size_m=0.65e-6,
-        wavelength=optics.wavelength_m(1e4),
-        sample_diffuser_distance_m=3e-3,
-        diffuser_detector_distance_m=0.02,
-        coherence_length_x_m=3.47e-6,
-        coherence_length_y_m=4.31e-6,
-        pad=pad,
-        fft=FFT.for_module(np, 1),
-    )
     y = np.zeros(t.shape, np.float32)
     y[pad : pad + n, pad : pad + n] = 0.9 + 0.2 * rng.random((n, n))
     psi = (0.01 * rng.normal(size=t.shape) + 0.1j * rng.normal(size=t.shape)).astype(np.complex64)
+
+    def model(fft):
+        return solver.build_model(
+            t,
+            frame_shape=(n, n),
+            pixel_size_m=0.65e-6,
+            wavelength=optics.wavelength_m(1e4),
+            sample_diffuser_distance_m=3e-3,
+            diffuser_detector_distance_m=0.02,
+            coherence_length_x_m=3.47e-6,
+            coherence_length_y_m=4.31e-6,
+            pad=pad,
+            fft=fft,
+        )
+
+    return y, psi, model
+
+
+def test_the_solver_gives_the_unfused_direction_and_iterates():
+    """Issue #31: the fused iteration gives the reference direction (and 30 iterations the same
+    psi) to float32 tolerance, on a padded frame with L1 > 0 (mask, OTF, regularizer)."""
+    y, psi, build = padded_problem(1)
+    model = build(FFT.for_module(np, 1))
 
     def run():
         j, d, _ = solver.objective_and_direction(psi, y, model)
@@ -109,26 +120,10 @@ def test_the_solver_gives_the_unfused_direction_and_iterates():
 def test_the_iteration_on_mkl_transforms_gives_the_pocketfft_direction():
     """Issue #31: with MKL's FFTs (the default on Intel CPUs) the solver gives pocketfft's
     direction to float32 tolerance and, after 30 iterations, the same psi."""
-    n, pad = 64, 9
-    rng = np.random.default_rng(2)
-    t = np.exp(0.3j * rng.normal(size=(n + 2 * pad, n + 2 * pad))).astype(np.complex64)
-    y = np.zeros(t.shape, np.float32)
-    y[pad : pad + n, pad : pad + n] = 0.9 + 0.2 * rng.random((n, n))
-    psi = (0.01 * rng.normal(size=t.shape) + 0.1j * rng.normal(size=t.shape)).astype(np.complex64)
+    y, psi, build = padded_problem(2)
     runs = []
     for library in ("mkl", "scipy"):
-        model = solver.build_model(
-            t,
-            frame_shape=(n, n),
-            pixel_size_m=0.65e-6,
-            wavelength=optics.wavelength_m(1e4),
-            sample_diffuser_distance_m=3e-3,
-            diffuser_detector_distance_m=0.02,
-            coherence_length_x_m=3.47e-6,
-            coherence_length_y_m=4.31e-6,
-            pad=pad,
-            fft=FFT.for_module(np, 1, library),
-        )
+        model = build(FFT.for_module(np, 1, library))
         j, d, _ = solver.objective_and_direction(psi, y, model)
         runs.append((j, d, solver.pwf(y, model, max_iter=30, tol=0).psi))
     (j1, d1, p1), (j0, d0, p0) = runs
