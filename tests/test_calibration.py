@@ -306,3 +306,31 @@ def test_coherent_speckle_is_the_screens_transmission_at_zero_distance_and_follo
     screen = np.abs(diffusers.transmission(thickness, 10_000.0)) ** 2
     screen = screen.reshape(48, 2, 64, 2).mean(axis=(1, 3))
     np.testing.assert_allclose(diffusers.coherent_speckle((48, 64), distance_m=0.0, **geo), screen / screen.mean())
+
+
+def test_the_compiled_splat_adds_what_the_index_arrays_add(monkeypatch):
+    """diffusers._splat: the numba loop adds every kernel cell at every grain, periodically,
+    as the index-array + bincount path does (to float64 rounding), into a thickness already
+    holding other grains; and a whole screen is the same either way."""
+    from pwf_dask.physics import diffusers
+
+    if diffusers._splat_loop() is None:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(5)
+    kernels, _ = diffusers._grain_kernels(4.3, "mixed", rng)
+    base = rng.random(40 * 56)
+    cy, cx = rng.integers(0, 40, 300), rng.integers(0, 56, 300)
+    compiled, indexed = base.copy(), base.copy()
+    for ky, kx, k in kernels:
+        diffusers._splat(compiled, (40, 56), cy, cx, ky, kx, k)
+    monkeypatch.setattr(diffusers, "_splat_loop", lambda: None)
+    for ky, kx, k in kernels:
+        diffusers._splat(indexed, (40, 56), cy, cx, ky, kx, k)
+    np.testing.assert_allclose(compiled, indexed, rtol=1e-13)
+    assert np.abs(compiled - base).max() > 1  # the grains were added (kernels ~ 2 r cells thick)
+    monkeypatch.undo()
+    screens = []
+    for splat in (diffusers._splat_loop, lambda: None):
+        monkeypatch.setattr(diffusers, "_splat_loop", splat)
+        screens.append(diffusers.grain_thickness((64, 64), 0.5e-6, np.random.default_rng(1), radius_median_m=2e-6))
+    np.testing.assert_allclose(*screens, rtol=1e-12, atol=1e-20)

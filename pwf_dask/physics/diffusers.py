@@ -167,17 +167,48 @@ def _splat(thickness, shape, cy, cx, ky, kx, kernel) -> None:
     The same sum as convolving the grains' impulses with the kernel by FFT, which the grains'
     sparsity makes wasteful: a few thousand grains of ~150 kernel cells against two full-frame
     FFTs per grain size and shape (8 x 5 of them); the template calibration, which synthesises
-    26 such diffusers, became ~5x faster."""
+    26 such diffusers, became ~5x faster. A compiled loop (numba) adds each cell in place, ~9x
+    faster again than the index arrays and ``bincount`` it falls back to without numba; the two
+    differ only in the order of the float64 additions."""
     ny, nx = shape
     ky, kx, w = ky.ravel(), kx.ravel(), kernel.ravel()
     keep = w != 0
     ky, kx, w = ky[keep], kx[keep], w[keep]
+    loop = _splat_loop()
+    if loop is not None:
+        loop(
+            thickness,
+            ny,
+            nx,
+            np.asarray(cy, np.int64),
+            np.asarray(cx, np.int64),
+            ky.astype(np.int64),
+            kx.astype(np.int64),
+            w,
+        )
+        return
     step = max(1, _SPLAT_BATCH // max(1, w.size))
     for i in range(0, cy.size, step):
         rows = (cy[i : i + step, None] + ky) % ny
         cols = (cx[i : i + step, None] + kx) % nx
         flat = (rows * nx + cols).ravel()
         thickness += np.bincount(flat, weights=np.broadcast_to(w, (rows.shape[0], w.size)).ravel(), minlength=ny * nx)
+
+
+def _splat_cells(thickness, ny, nx, cy, cx, ky, kx, w):
+    for i in range(cy.size):
+        for j in range(w.size):
+            thickness[((cy[i] + ky[j]) % ny) * nx + (cx[i] + kx[j]) % nx] += w[j]
+
+
+@lru_cache(maxsize=1)
+def _splat_loop():
+    """:func:`_splat_cells` compiled (and cached on disk) by numba, or None without numba."""
+    try:
+        import numba
+    except ImportError:  # pragma: no cover - numba is a dependency; a bare checkout may lack it
+        return None
+    return numba.njit(_splat_cells, nogil=True, cache=True)
 
 
 def transmission(thickness_m: np.ndarray, energy_eV: float, material: str = DEFAULT_MATERIAL) -> np.ndarray:
