@@ -56,6 +56,18 @@ def resolve_device(device: str) -> ModuleType:
     raise ValueError(f"device must be cpu, gpu or auto, not {device!r}")
 
 
+def ndimage(xp) -> ModuleType:
+    """The ``scipy.ndimage`` of ``xp``'s device: SciPy's for NumPy, ``cupyx.scipy.ndimage`` for CuPy
+    (filters and morphology of the same names and boundary modes)."""
+    if xp is np:
+        from scipy import ndimage as host
+
+        return host
+    from cupyx.scipy import ndimage as device
+
+    return device
+
+
 def to_numpy(a: Any) -> np.ndarray:
     """Host copy of an array of either module."""
     if type(a).__module__.startswith("cupy"):

@@ -1163,8 +1163,9 @@ def _solver_run(y_full, opts: RetrievalOptions):
 
 
 def _phase_and_attenuation(solved: _Solved, single_material: bool, prior: dict, geometry: Geometry):
-    """Im psi and -Re psi on the frame, as float64 NumPy; with the single-material prior the
-    phase's low frequencies follow the attenuation (on the solver's device and precision)."""
+    """Im psi and -Re psi on the frame, as float64 on the solver's device (the background is
+    found and zeroed there); with the single-material prior the phase's low frequencies follow
+    the attenuation (in the solver's precision)."""
     psi = solved.sol.psi[solved.model.frame]
     phase = psi.imag
     if single_material:
@@ -1176,15 +1177,18 @@ def _phase_and_attenuation(solved: _Solved, single_material: bool, prior: dict, 
             wavelength_m=geometry.wavelength_m,
             distance_m=geometry.sample_detector_distance_m,
         )
-    return to_numpy(phase).astype(np.float64), -to_numpy(psi.real).astype(np.float64)
+    xp = solved.model.xp
+    return phase.astype(xp.float64), -psi.real.astype(xp.float64)
 
 
 def _zeroed_background(phase, attenuation, background_mask, unseen):
     """(background mask, phase, attenuation) with a plane fitted to the background pixels
-    subtracted (:mod:`pwf_dask.physics.background`); the given mask, else the detected one."""
-    mask = background_mask if background_mask is not None else bg.detect_background(phase, attenuation)
-    fit = mask if unseen is None else _seen_background(mask, to_numpy(unseen))
-    return mask, bg.zero_background(phase, fit), bg.zero_background(attenuation, fit)
+    subtracted (:mod:`pwf_dask.physics.background`); the given mask, else the detected one.
+    The mask comes back on the host, the images on their device."""
+    xp = get_array_module(phase)
+    mask = xp.asarray(background_mask) if background_mask is not None else bg.detect_background(phase, attenuation)
+    fit = mask if unseen is None else _seen_background(mask, xp.asarray(unseen))
+    return to_numpy(mask), bg.zero_background(phase, fit), bg.zero_background(attenuation, fit)
 
 
 def _seen_background(mask: np.ndarray, unseen: np.ndarray) -> np.ndarray:

@@ -12,6 +12,7 @@ CuPy array does (cupy/_core/core.pyx):
   assigning one into a slice (CuPy's default, without ``CUPY_EXPERIMENTAL_SLICE_COPY``);
 - reductions and scalar indexing return 0-d arrays, which convert with ``float()``;
 - ``fft`` keeps single precision (cupy.fft does, numpy.fft does not): it is ``scipy.fft``.
+- ``cupyx.scipy.ndimage`` (:data:`NDIMAGE`) is SciPy's on the wrapped arrays.
 
 Functions are NumPy's with arrays unwrapped and results wrapped; only the names CuPy also
 has are offered (:data:`FUNCTIONS`), so code that needs a NumPy-only routine fails here as
@@ -39,7 +40,7 @@ FUNCTIONS = (
     "einsum empty empty_like exp expand_dims eye flip floor full full_like gradient hypot imag "
     "indices isfinite isnan linspace log log10 log1p logical_and logical_not logical_or matmul "
     "max maximum mean median meshgrid min minimum moveaxis multiply nanmean nanmedian nonzero ones "
-    "ones_like outer pad percentile power prod ptp rad2deg ravel real reshape rint roll round sign "
+    "ones_like outer pad percentile power prod ptp quantile rad2deg ravel real reshape rint roll round sign "
     "sin sinh sort sqrt square squeeze stack std subtract sum swapaxes take tan tanh tensordot tile "
     "trace transpose tril triu unique var vdot vstack hstack where zeros zeros_like"
 ).split()
@@ -346,12 +347,29 @@ def _module() -> types.ModuleType:
     return cp
 
 
+#: ``cupyx.scipy.ndimage`` routines the package calls (the same names and modes as SciPy's)
+NDIMAGE = ("gaussian_filter", "binary_dilation")
+
+
+def _cupyx() -> dict[str, types.ModuleType]:
+    """``cupyx``, ``cupyx.scipy`` and ``cupyx.scipy.ndimage``: SciPy's filters on device arrays."""
+    import scipy.ndimage
+
+    cupyx = types.ModuleType("cupyx")
+    cupyx.scipy = types.ModuleType("cupyx.scipy")
+    cupyx.scipy.ndimage = types.ModuleType("cupyx.scipy.ndimage")
+    for name in NDIMAGE:
+        setattr(cupyx.scipy.ndimage, name, _device(getattr(scipy.ndimage, name)))
+    return {"cupyx": cupyx, "cupyx.scipy": cupyx.scipy, "cupyx.scipy.ndimage": cupyx.scipy.ndimage}
+
+
 @contextmanager
 def installed():
     """``import cupy`` gives the emulator inside the block; the previous module after it."""
-    before = {k: sys.modules.get(k) for k in ("cupy", "cupy.fft", "cupy.linalg", "cupy.cuda")}
     cp = _module()
-    sys.modules.update({"cupy": cp, "cupy.fft": cp.fft, "cupy.linalg": cp.linalg, "cupy.cuda": cp.cuda})
+    modules = {"cupy": cp, "cupy.fft": cp.fft, "cupy.linalg": cp.linalg, "cupy.cuda": cp.cuda, **_cupyx()}
+    before = {k: sys.modules.get(k) for k in modules}
+    sys.modules.update(modules)
     try:
         yield cp
     finally:

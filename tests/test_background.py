@@ -57,3 +57,21 @@ def test_a_wide_tomogram_slice_is_searched_binned_and_fitted_at_full_resolution(
     assert out.dtype == np.float32
     assert abs(out[0][~disk & mask]).max() < 1e-7
     np.testing.assert_allclose(out[0][disk].mean(), 1e-6, rtol=0.01)
+
+
+@pytest.mark.gpu
+def test_background_is_found_and_zeroed_on_the_device(cupy, rng):
+    """On CuPy the detection and the surface stay on the device (``cupyx.scipy.ndimage``;
+    ~1.3 s of host NumPy per full frame before) and give NumPy's mask and images."""
+    ny, nx = 80, 112
+    yy, xx = np.mgrid[0:ny, 0:nx] / 100.0
+    disk = (np.hypot(yy * 100 - 40, xx * 100 - 50) < 18).astype(float)
+    phase = 0.2 + 0.1 * yy - 3.0 * disk + rng.normal(0, 1e-2, (ny, nx))
+    attenuation = 0.01 * disk + rng.normal(0, 1e-4, (ny, nx))
+    mask = bg.detect_background(phase, attenuation)
+    on_device = bg.detect_background(cupy.asarray(phase), cupy.asarray(attenuation))
+    assert isinstance(on_device, cupy.ndarray)
+    np.testing.assert_array_equal(cupy.asnumpy(on_device), mask)
+    flat = bg.zero_background(cupy.asarray(phase), on_device)
+    assert isinstance(flat, cupy.ndarray)
+    np.testing.assert_allclose(cupy.asnumpy(flat), bg.zero_background(phase, mask), atol=1e-12)

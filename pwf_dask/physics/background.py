@@ -6,12 +6,17 @@ come from a user mask or are detected: X-ray matter only delays the phase (delta
 negative phase in the exp(+ikz) convention) and only attenuates, so the sample is where the
 smoothed phase falls, or the attenuation rises, significantly off the background plane. The
 detection never assumes sample-free image borders.
+
+Every function runs on the array module of its input (NumPy, or CuPy with
+``cupyx.scipy.ndimage``): on a GPU the detection stays on the device, where it costs
+milliseconds against ~1.3 s of host NumPy per 2160 x 2560 projection (docs/gpu.md).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
+
+from pwf_dask.backend import get_array_module, ndimage, to_numpy
 
 #: the fewest sample-free pixels a background surface is fitted on
 MIN_BACKGROUND_PIXELS = 6
@@ -22,13 +27,13 @@ def _exponents(degree: int) -> list[tuple[int, int]]:
     return [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)]
 
 
-def _powers(n: int, degree: int) -> np.ndarray:
+def _powers(n: int, degree: int, xp=np):
     """(n, degree + 1): the coordinate scaled to [0, 1] (conditioning), to the powers 0..degree."""
-    t = np.arange(n, dtype=np.float64) / max(n - 1, 1)
-    return t[:, None] ** np.arange(degree + 1)
+    t = xp.arange(n, dtype=xp.float64) / max(n - 1, 1)
+    return t[:, None] ** xp.arange(degree + 1)
 
 
-def fit_surface(image: np.ndarray, mask: np.ndarray, degree: int = 1) -> np.ndarray:
+def fit_surface(image, mask, degree: int = 1):
     """Least-squares polynomial surface of ``degree`` (1: plane, 2: quadratic) through
     ``image[mask]``, evaluated everywhere.
 
@@ -37,46 +42,50 @@ def fit_surface(image: np.ndarray, mask: np.ndarray, degree: int = 1) -> np.ndar
     degree, where a design matrix of every pixel costs one pass per term and a QR of it (91 %
     of a 2560^2 tomogram's time; issue #31). The normal equations square the condition
     number; with coordinates in [0, 1] and degree <= 2 that stays below 1e5, and a
-    rank-deficient mask (one row) still gets the minimum-norm least-squares solution.
+    rank-deficient mask (one row) still gets the minimum-norm least-squares solution. The
+    sums are taken on the image's device; the (2 degree + 1)^2 of them are solved on the host.
     """
+    xp = get_array_module(image, mask)
     ny, nx = image.shape
     terms = _exponents(degree)
-    y_pow, x_pow = _powers(ny, 2 * degree), _powers(nx, 2 * degree)
-    moments = y_pow.T @ mask.astype(np.float64) @ x_pow  # sum over the mask of y^a x^b
-    projections = y_pow[:, : degree + 1].T @ np.where(mask, np.asarray(image, np.float64), 0.0) @ x_pow[:, : degree + 1]
+    y_pow, x_pow = _powers(ny, 2 * degree, xp), _powers(nx, 2 * degree, xp)
+    moments = to_numpy(y_pow.T @ mask.astype(xp.float64) @ x_pow)  # sum over the mask of y^a x^b
+    masked = xp.where(mask, xp.asarray(image, dtype=xp.float64), 0.0)
+    projections = to_numpy(y_pow[:, : degree + 1].T @ masked @ x_pow[:, : degree + 1])
     normal = np.array([[moments[i + k, j + m] for k, m in terms] for i, j in terms])
     coef, *_ = np.linalg.lstsq(normal, np.array([projections[i, j] for i, j in terms]), rcond=None)
     c = np.zeros((degree + 1, degree + 1))
     for (i, j), value in zip(terms, coef):
         c[i, j] = value
-    return y_pow[:, : degree + 1] @ c @ x_pow[:, : degree + 1].T
+    return y_pow[:, : degree + 1] @ xp.asarray(c) @ x_pow[:, : degree + 1].T
 
 
-def fit_plane(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def fit_plane(image, mask):
     """Least-squares plane a + b y + c x through ``image[mask]``, evaluated everywhere."""
     return fit_surface(image, mask, 1)
 
 
-def _robust_sigma(values: np.ndarray) -> float:
-    med = np.median(values)
-    return float(1.4826 * np.median(np.abs(values - med))) or float(np.std(values)) or 1.0
+def _robust_sigma(values) -> float:
+    xp = get_array_module(values)
+    med = xp.median(values)
+    return float(1.4826 * xp.median(xp.abs(values - med))) or float(xp.std(values)) or 1.0
 
 
-def _noise_sigma(image: np.ndarray) -> float:
+def _noise_sigma(image) -> float:
     """Robust small-scale spread: MAD of the image minus its own smoothing (noise and texture)."""
-    return _robust_sigma(image - ndimage.gaussian_filter(image, 6.0))
+    return _robust_sigma(image - ndimage(get_array_module(image)).gaussian_filter(image, 6.0))
 
 
 def detect_background(
-    phase: np.ndarray,
-    attenuation: np.ndarray | None = None,
+    phase,
+    attenuation=None,
     *,
     smooth_px: float = 3.0,
     k: float = 5.0,
     margin_px: int = 4,
     iterations: int = 20,
     start_quantile: float = 0.9,
-) -> np.ndarray:
+):
     """Boolean mask of sample-free pixels (True = background).
 
     Starts from the top decile of the smoothed phase (matter only lowers it), then
@@ -84,29 +93,33 @@ def detect_background(
     smoothed phase lies more than ``k`` noise sigmas below the plane (or the attenuation
     above it); grow the sample by ``margin_px`` for edge fringes; refit. The noise sigma is
     measured on small scales, so a sample covering most of the frame cannot inflate it.
+    The mask is of the phase's array module.
     """
-    ph = ndimage.gaussian_filter(np.asarray(phase, np.float64), smooth_px)
-    at = None if attenuation is None else ndimage.gaussian_filter(np.asarray(attenuation, np.float64), smooth_px)
+    xp = get_array_module(phase)
+    nd = ndimage(xp)
+    ph = nd.gaussian_filter(xp.asarray(phase, dtype=xp.float64), smooth_px)
+    at = None if attenuation is None else nd.gaussian_filter(xp.asarray(attenuation, dtype=xp.float64), smooth_px)
     sig_p = _noise_sigma(ph)
     sig_a = None if at is None else _noise_sigma(at)
-    mask = ph >= np.quantile(ph, start_quantile)
+    mask = ph >= xp.quantile(ph, start_quantile)
     if at is not None:
-        mask &= at <= np.quantile(at[mask], 0.5)
+        mask &= at <= xp.quantile(at[mask], 0.5)
     for _ in range(iterations):
         sample = ph - fit_plane(ph, mask) < -k * sig_p
         if at is not None:
             sample |= at - fit_plane(at, mask) > k * sig_a
         if margin_px:
-            sample = ndimage.binary_dilation(sample, iterations=margin_px)
+            sample = nd.binary_dilation(sample, iterations=margin_px)
         new = ~sample
-        if new.sum() < 0.02 * new.size or np.array_equal(new, mask):
+        if int(new.sum()) < 0.02 * new.size or bool(xp.array_equal(new, mask)):
             break
         mask = new
     return mask
 
 
-def zero_background(image: np.ndarray, background: np.ndarray, degree: int = 1) -> np.ndarray:
+def zero_background(image, background, degree: int = 1):
     """``image`` minus the surface (plane by default) fitted over ``background`` pixels."""
-    if background.sum() < MIN_BACKGROUND_PIXELS:
+    if int(background.sum()) < MIN_BACKGROUND_PIXELS:
         raise ValueError(f"background mask has fewer than {MIN_BACKGROUND_PIXELS} pixels: cannot fit a surface")
-    return image - fit_surface(np.asarray(image, np.float64), background, degree)
+    xp = get_array_module(image)
+    return image - fit_surface(xp.asarray(image, dtype=xp.float64), background, degree)
