@@ -341,6 +341,20 @@ def test_local_worker_processes_share_the_cores_among_their_fft_threads():
     assert threads == [max(1, cpu_count() // 2)] * 2
 
 
+def test_workers_of_a_given_cluster_take_their_fft_threads_from_their_environment(monkeypatch):
+    """Several worker processes on one host of a ``tcp://`` cluster cannot see each other:
+    ``PWF_DASK_FFT_WORKERS`` in their environment sets their FFT threads."""
+    from distributed import LocalCluster
+
+    from pwf_dask.pipeline.cluster import Runner
+
+    monkeypatch.setenv("PWF_DASK_FFT_WORKERS", "3")  # the workers' processes inherit it
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        with Runner(cluster.scheduler_address) as runner:
+            assert runner.fft_workers() is None  # each worker decides
+            assert runner.map(_fft_threads, [None]) == [3]
+
+
 def test_an_existing_cluster_survives_a_lost_worker(tmp_path):
     """Issue #29: on a cluster given by its tcp:// address, a worker that dies mid-task is
     restarted by its nanny and the task retried; the run sees every result."""

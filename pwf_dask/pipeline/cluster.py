@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pwf_dask.backend import default_fft_workers
+
 SCHEDULERS = ("threads", "processes", "local", "local-cuda")
 ADDRESS_PREFIXES = ("tcp://", "tls://", "ucx://")
 #: the LocalCluster dashboard's default bind: this host only (issue #29: ":0" answered from
@@ -198,13 +200,17 @@ def _first_line(exc: Exception) -> str:
 
 
 def worker_fft_threads(default: int | None) -> int | None:
-    """Inside a distributed worker: cores / that worker's threads; else ``default``."""
+    """``default``, else inside a worker of a cluster given by address: ``PWF_DASK_FFT_WORKERS``
+    from its environment, or its cores / its threads (one worker per host or per allotment of
+    cores: several worker processes sharing a host's cores need the variable set)."""
     if default is not None:
         return default
     try:
         from distributed import get_worker
 
         w = get_worker()
-        return max(1, cpu_count() // max(1, w.state.nthreads))
     except (ImportError, ValueError, AttributeError):
         return None
+    if os.environ.get("PWF_DASK_FFT_WORKERS"):
+        return default_fft_workers()
+    return max(1, cpu_count() // max(1, getattr(getattr(w, "state", None), "nthreads", 1)))
