@@ -608,14 +608,23 @@ def _run_command(command) -> None:
 
 
 def _estimate_command(command) -> None:
+    from pwf_dask.pipeline import estimate  # its defaults (NumPy only: cheap at parse time)
+
     m = command("estimate", "peak memory per worker and time of each stage, predicted before a run")
     m.add_argument("scan", help="the scan store (only its metadata is read)")
     m.add_argument("--workers", type=int, default=1, help="single-threaded workers the time is divided over")
     m.add_argument(
-        "--iterations", type=int, default=250, help="PWF iterations per projection (250: the median with angle chains)"
+        "--iterations",
+        type=int,
+        default=estimate.DEFAULT_ITERATIONS,
+        help="PWF iterations per projection (the mean of the full-width bench of the paper's optics)",
     )
     m.add_argument(
-        "--field-upsample", type=_field_upsample, default=1, help="the sample field's grid factor (run's option)"
+        "--field-upsample",
+        type=_field_upsample,
+        default=estimate.DEFAULT_FIELD_UPSAMPLE,
+        help="the sample field's grid factor (run's option; 1.5: what coarse diffusers such as P3000 take, "
+        "1: fine grains; auto plans for 1.5)",
     )
     m.add_argument(
         "--fbp", default="auto", choices=["auto", "gridrec", "backproject"], help="tomo's FBP (run's option)"
