@@ -66,7 +66,7 @@ class Speeds:
 
     iteration_s: float  # one PWF iteration of the padded grid, one thread
     fft_s: float  # one complex64 FFT of the padded grid (the FSC's transforms scale from it)
-    fbp_row_s: float  # FBP of one row (slice) of the scan's width: fixed part ...
+    fbp_row_s: float  # FBP and background of one row (slice) of the scan's width: fixed part ...
     fbp_row_s_per_angle: float  # ... and per angle
     fbp: str = "backproject"  # the method timed
 
@@ -143,15 +143,23 @@ def measure_speeds(
         scipy.fft.fft2(x, workers=fft_workers)
     fft_s = (time.perf_counter() - t) / 3
     method = tomography.resolve_fbp(fbp)
+    # a rod's sinogram (a slice with sample and background, as the background search meets it)
+    u = np.arange(shape[1]) - shape[1] / 2
+    chord = 2 * np.sqrt(np.clip((0.3 * shape[1]) ** 2 - u**2, 0, None)) / shape[1]
     seconds = []
     for na in (16, 48):
-        sino = np.random.default_rng(1).normal(size=(na, 2, shape[1])).astype(np.float32)
+        sino = chord + 0.01 * np.random.default_rng(1).normal(size=(na, 2, shape[1]))
         theta = np.linspace(0, 180, na, endpoint=False)
         t = time.perf_counter()
-        tomography.back_projection(sino, theta, 1e-6, fft=FFT.for_module(np, fft_workers), method=method)
+        slices = tomography.back_projection(
+            sino.astype(np.float32), theta, 1e-6, fft=FFT.for_module(np, fft_workers), method=method
+        )
         seconds.append((time.perf_counter() - t) / 2)
+    t = time.perf_counter()
+    tomography.remove_background(slices)  # each slice's quadratic background, part of a tomo task
+    background_s = (time.perf_counter() - t) / 2
     per_angle = max(0.0, (seconds[1] - seconds[0]) / 32)
-    return Speeds(iteration_s, fft_s, max(0.0, seconds[0] - 16 * per_angle), per_angle, method)
+    return Speeds(iteration_s, fft_s, max(0.0, seconds[0] - 16 * per_angle) + background_s, per_angle, method)
 
 
 def retrieval_peak_mb(shape: tuple[int, int], field_upsample: float = 1, positions: int = 1, pad: int = 17) -> float:
@@ -232,7 +240,8 @@ def estimate_scan(
             "tomo",
             blocks,
             base + tomo_peak_mb(n_angles, rb, nx, speeds.fbp),
-            fbp / workers,
+            # a worker's largest row block at least: there may be fewer blocks than workers
+            max(fbp / workers, 2 * speeds.slice_s(n_angles) * min(rb, ny)),
             f"{blocks} row blocks of {rb} rows; {speeds.fbp} FBP {speeds.slice_s(n_angles):.2f} s per slice",
         ),
         _fsc_stage(ny, nx, n_angles, n_positions, speeds),
