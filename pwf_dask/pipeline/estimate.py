@@ -127,9 +127,10 @@ def measure_speeds(
     field_upsample: float = DEFAULT_FIELD_UPSAMPLE,
     l1_zero: bool = False,
 ) -> Speeds:
-    """Time one PWF iteration of ``shape``'s padded grid (:func:`iteration_seconds`), and the
-    FBP ``fbp`` of two rows of the scan's width from 16 and from 48 angles (its cost per slice:
-    a fixed part plus one per angle)."""
+    """Time one PWF iteration of ``shape``'s padded grid (:func:`iteration_seconds`), one FFT of
+    it, and the FBP ``fbp`` of two rows of a rod's sinogram at the scan's width from 16 and from
+    48 angles, with each slice's background fit (its cost per slice: a fixed part plus one per
+    angle)."""
     import scipy.fft
 
     from pwf_dask.backend import FFT
