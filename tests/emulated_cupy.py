@@ -40,7 +40,7 @@ FUNCTIONS = (
     "einsum empty empty_like exp expand_dims eye flip floor full full_like gradient hypot imag "
     "indices isfinite isnan linspace log log10 log1p logical_and logical_not logical_or matmul "
     "max maximum mean median meshgrid min minimum moveaxis multiply nanmean nanmedian nonzero ones "
-    "ones_like outer pad percentile power prod ptp quantile rad2deg ravel real reshape rint roll round sign "
+    "ones_like outer pad percentile power prod ptp quantile rad2deg repeat ravel real reshape rint roll round sign "
     "sin sinh sort sqrt square squeeze stack std subtract sum swapaxes take tan tanh tensordot tile "
     "trace transpose tril triu unique var vdot vstack hstack where zeros zeros_like"
 ).split()

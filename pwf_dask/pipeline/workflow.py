@@ -851,10 +851,11 @@ def _tomo_task(item, *, recon_path, center_m, device, fft_workers, fbp):
     # one volume at a time: delta is written before beta's FBP (the task's peak, issue #29)
     for name, out, sign in (("phase", "delta", -1.0), ("attenuation", "beta", 1.0)):
         sino = xp.asarray(sinograms.pop(name))
-        slices = to_numpy(tomography.back_projection(sino, angles, pix, center_m, fft=fft, method=fbp))
+        slices = tomography.back_projection(sino, angles, pix, center_m, fft=fft, method=fbp)
         del sino
         slices *= np.float32(sign * wl / (2 * np.pi))  # tomography.to_refractive_index, in place
-        g[out][p, rows] = tomography.remove_background(slices).astype(np.float32, copy=False)
+        # the background fit on the FBP's device, then to the host
+        g[out][p, rows] = to_numpy(tomography.remove_background(slices)).astype(np.float32, copy=False)
         del slices
     g["tomo_done"][p, b] = 1
     return []

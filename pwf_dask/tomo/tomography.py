@@ -234,30 +234,33 @@ def to_refractive_index(fbp_phase, fbp_attenuation, wavelength: float):
 BACKGROUND_SEARCH_PX = 512
 
 
-def background_mask(image: np.ndarray) -> np.ndarray:
+def background_mask(image):
     """Sample-free pixels of one tomogram slice (matter is positive in delta and beta, so the
     detector, which looks for matter below the background, is handed the slice negated); a
     slice wider than :data:`BACKGROUND_SEARCH_PX` is searched binned b x b, its edge rows and
-    columns beyond whole bins left out of the fit."""
+    columns beyond whole bins left out of the fit. On the slice's device (NumPy or CuPy)."""
+    xp = get_array_module(image)
     b = max(1, min(image.shape) // BACKGROUND_SEARCH_PX)
     if b == 1:
-        return bg.detect_background(-image / (np.abs(image).max() or 1.0), smooth_px=1.5, margin_px=2)
+        return bg.detect_background(-image / (xp.abs(image).max() or 1.0), smooth_px=1.5, margin_px=2)
     ny, nx = (image.shape[0] // b) * b, (image.shape[1] // b) * b
     small = image[:ny, :nx].reshape(ny // b, b, nx // b, b).mean(axis=(1, 3))
-    found = bg.detect_background(-small / (np.abs(small).max() or 1.0), smooth_px=1.5, margin_px=1)
-    mask = np.zeros(image.shape, bool)
-    mask[:ny, :nx] = np.repeat(np.repeat(found, b, axis=0), b, axis=1)
+    found = bg.detect_background(-small / (xp.abs(small).max() or 1.0), smooth_px=1.5, margin_px=1)
+    mask = xp.zeros(image.shape, bool)
+    mask[:ny, :nx] = xp.repeat(xp.repeat(found, b, axis=0), b, axis=1)
     return mask
 
 
-def remove_background(slices: np.ndarray, degree: int = 2) -> np.ndarray:
-    """Subtract a quadratic surface fitted over the empty area of each slice (Methods)."""
-    slices = np.asarray(slices)
+def remove_background(slices, degree: int = 2):
+    """Subtract a quadratic surface fitted over the empty area of each slice (Methods), on the
+    slices' device: with ``--device gpu`` a 2560^2 slice's ~0.5 s of host work stays on the GPU."""
+    xp = get_array_module(slices)
+    slices = xp.asarray(slices)
     # single-precision slices come back single (each fitted in double): a task then holds one
     # volume-sized float32 array here, not two float64 ones
-    out = np.empty(slices.shape, np.float32 if slices.dtype == np.float32 else np.float64)
+    out = xp.empty(slices.shape, xp.float32 if slices.dtype == xp.float32 else xp.float64)
     for i in range(slices.shape[0]):
-        s = slices[i].astype(np.float64)
+        s = slices[i].astype(xp.float64)
         mask = background_mask(s)
-        out[i] = bg.zero_background(s, mask, degree) if mask.sum() >= 6 else s
+        out[i] = bg.zero_background(s, mask, degree) if int(mask.sum()) >= 6 else s
     return out
