@@ -19,6 +19,7 @@ import numpy as np
 from benchmarks.reporting import device_name, interleaved_min, write_rows_csv
 from pwf_dask.backend import FFT, default_fft_workers, resolve_device
 from pwf_dask.physics import optics
+from pwf_dask.pipeline import estimate
 from pwf_dask.pwf import kernels, solver
 from pwf_dask.stores import scan_io
 from pwf_dask.tomo import tomography
@@ -43,26 +44,11 @@ def iteration_benchmark(
     """
     xp = resolve_device(device)
     fft = FFT.for_module(xp, fft_workers)
-    rng = np.random.default_rng(0)
-    wl = optics.wavelength_m(10_000)
-    p = 0.65e-6
-    cx, cy = 3.47e-6, 4.31e-6  # the paper's coherence lengths
-    t = xp.asarray(np.exp(1j * rng.normal(size=shape)).astype(np.complex64))
-    model = solver.build_model(
-        t,
-        frame_shape=shape,
-        pixel_size_m=p,
-        wavelength=wl,
-        sample_diffuser_distance_m=l1_m,
-        diffuser_detector_distance_m=0.02,
-        coherence_length_x_m=cx,
-        coherence_length_y_m=cy,
-        upsample=upsample,
-        field_upsample=field_upsample,
-        precision=precision,
-        fft=fft,
+    rng = np.random.default_rng(1)
+    p, (cx, cy) = estimate.TIMING_PIXEL_M, estimate.TIMING_COHERENCE_M
+    model, y = estimate.timing_problem(
+        shape, fft, l1_m=l1_m, upsample=upsample, field_upsample=field_upsample, precision=precision
     )
-    y = xp.asarray(rng.random(shape).astype(np.float32) + 0.5)
     # the solver's own loop (stop-rule statistics, restarts and Nesterov included), a fixed
     # number of iterations from a fixed start, so every call does the same work; a call also
     # pays for its set-up (the low-band filter, the first evaluation), which a projection's
@@ -517,7 +503,6 @@ def run_fullwidth_benchmark(
 
     import zarr
 
-    from pwf_dask.pipeline import estimate
     from pwf_dask.simulation import simulate_scan
 
     cfg = dict(FULLWIDTH_SCAN, shape=(32, 256), angles=41) if quick else dict(FULLWIDTH_SCAN)

@@ -81,6 +81,36 @@ def padded_grid(shape: tuple[int, int], pad: int = 17) -> tuple[int, int]:
     return computational_shape(shape, pad)
 
 
+#: the paper's optics for timing an iteration: pixel, coherence lengths (x, y), L1, L2, energy
+TIMING_PIXEL_M = 0.65e-6
+TIMING_COHERENCE_M = (3.47e-6, 4.31e-6)
+TIMING_L1_M, TIMING_L2_M, TIMING_ENERGY_EV = 3e-3, 0.02, 10_000.0
+
+
+def timing_problem(grid: tuple[int, int], fft, *, l1_m: float = TIMING_L1_M, **model_options):
+    """(model, y): a PWF model of the paper's optics on ``grid`` with a random diffuser, and a
+    random image, on ``fft``'s array module; what an iteration is timed on (here and by
+    ``bench iteration``). ``model_options`` go to :func:`pwf_dask.pwf.solver.build_model`."""
+    from pwf_dask.physics import optics
+    from pwf_dask.pwf import solver
+
+    xp = fft.xp
+    rng = np.random.default_rng(0)
+    model = solver.build_model(
+        xp.asarray(np.exp(1j * rng.normal(size=grid)).astype(np.complex64)),
+        frame_shape=grid,
+        pixel_size_m=TIMING_PIXEL_M,
+        wavelength=optics.wavelength_m(TIMING_ENERGY_EV),
+        sample_diffuser_distance_m=l1_m,
+        diffuser_detector_distance_m=TIMING_L2_M,
+        coherence_length_x_m=TIMING_COHERENCE_M[0],
+        coherence_length_y_m=TIMING_COHERENCE_M[1],
+        fft=fft,
+        **model_options,
+    )
+    return model, xp.asarray(rng.random(grid).astype(np.float32) + 0.5)
+
+
 def iteration_seconds(
     shape: tuple[int, int], field_upsample: float = 1, l1_zero: bool = False, fft_workers: int = 1, pad: int = 17
 ) -> float:
@@ -89,24 +119,11 @@ def iteration_seconds(
     run (each pays the same set-up), halved, the fastest of two rounds, as ``bench iteration``
     times it."""
     from pwf_dask.backend import FFT
-    from pwf_dask.physics import optics
     from pwf_dask.pwf import solver
 
-    grid = padded_grid(shape, pad)
-    rng = np.random.default_rng(0)
-    model = solver.build_model(
-        np.exp(1j * rng.normal(size=grid)).astype(np.complex64),
-        frame_shape=grid,
-        pixel_size_m=0.65e-6,
-        wavelength=optics.wavelength_m(10_000),
-        sample_diffuser_distance_m=0.0 if l1_zero else 3e-3,
-        diffuser_detector_distance_m=0.02,
-        coherence_length_x_m=3.47e-6,
-        coherence_length_y_m=4.31e-6,
-        field_upsample=field_upsample,
-        fft=FFT.for_module(np, fft_workers),
-    )
-    y = rng.random(grid).astype(np.float32) + 0.5
+    fft = FFT.for_module(np, fft_workers)
+    l1_m = 0.0 if l1_zero else TIMING_L1_M
+    model, y = timing_problem(padded_grid(shape, pad), fft, l1_m=l1_m, field_upsample=field_upsample)
 
     def run(n: int) -> float:
         t = time.perf_counter()
