@@ -459,9 +459,10 @@ def run_per_scan_benchmark(out_dir: str | Path, quick: bool = False) -> list[dic
         "",
         "`pwf-dask bench perscan`: the paper's geometry (10 keV, 0.65 um pixels, L1 = 3 mm, L2 = 20 mm,",
         "simulated P3000 sandpaper), one FFT thread, timed in one run. The calibration (template fit of the",
-        "coherence lengths, fresh template cache) and the diffuser fit run once per diffuser position in a scan",
-        "(`tests/test_workflow.py` counts the fits); the model build runs once per projection. Retrieval: one",
-        "projection from zero with the stored diffuser, default stop.",
+        "coherence lengths, fresh template cache; its templates simulated side by side on the driver's",
+        f"{default_fft_workers()} cores, as before a scan's tasks start) and the diffuser fit run once per",
+        "diffuser position in a scan (`tests/test_workflow.py` counts the fits); the model build runs once per",
+        "projection. Retrieval: one projection from zero with the stored diffuser, default stop.",
         "",
         "| frame | calibration (s) | diffuser fit (s) | model build (s) | retrieval (s) | iterations "
         "| calibration / retrieval | diffuser / retrieval | model / retrieval |",

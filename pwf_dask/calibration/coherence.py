@@ -13,13 +13,14 @@
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
 from scipy import ndimage
 
-from pwf_dask.backend import get_array_module, to_numpy
+from pwf_dask.backend import default_fft_workers, get_array_module, to_numpy
 from pwf_dask.physics.diffusers import DEFAULT_MATERIAL
 
 
@@ -237,9 +238,25 @@ def _template_spectrum(
             grain_shape="mixed",
             material=material,
             seed=seed,
+            fft_workers=1,  # the templates are simulated side by side (_template_spectra)
         )
         total += speckle_spectrum(speckle, tile)[0]
     return _ring_average(total / len(TEMPLATE_SEEDS))
+
+
+def _template_spectra(geometry: tuple, radii) -> list[np.ndarray]:
+    """:func:`_template_spectrum` of each grain radius at ``geometry`` (its other arguments),
+    the templates not yet kept simulated side by side on this process's cores: each is
+    independent and deterministic (fixed seeds), and numba's splat, NumPy's large-array passes
+    and the FFTs release the GIL, so threads give the same templates sooner."""
+    threads = min(len(radii), default_fft_workers())
+    if threads <= 1:
+        return [_template_spectrum(*geometry, radius) for radius in radii]
+    with ThreadPoolExecutor(threads, thread_name_prefix="pwf-template") as pool:
+        # the largest grains' templates (the largest frames) first, so that none is left alone
+        # at the end
+        started = {radius: pool.submit(_template_spectrum, *geometry, radius) for radius in sorted(radii)[::-1]}
+        return [started[radius].result() for radius in radii]
 
 
 def _fit_iotf(spectrum, variance, noise: float, template):
@@ -340,20 +357,17 @@ def fit_coherence_lengths(
     geometry = (tile, float(pixel_size_m), float(energy_eV), float(diffuser_detector_distance_m), diffuser_material)
     fits: dict[tuple[str, float | None], tuple | None] = {}
 
-    def fit_grains(radius: float) -> None:
-        if ("mixed grains", radius) not in fits:
-            fits[("mixed grains", radius)] = _fit_iotf(spectrum, variance, noise, _template_spectrum(*geometry, radius))
+    def fit_grains(radii) -> None:
+        for radius, template in zip(radii, _template_spectra(geometry, radii)):
+            fits[("mixed grains", radius)] = _fit_iotf(spectrum, variance, noise, template)
 
     def chi2(key) -> float:
         found = fits[key]
         return math.inf if found is None else found[2]
 
-    for radius in TEMPLATE_RADII_M[::2]:
-        fit_grains(radius)
+    fit_grains(TEMPLATE_RADII_M[::2])
     k = TEMPLATE_RADII_M.index(min(fits, key=chi2)[1])
-    for j in (k - 1, k + 1):
-        if 0 <= j < len(TEMPLATE_RADII_M):
-            fit_grains(TEMPLATE_RADII_M[j])
+    fit_grains([TEMPLATE_RADII_M[j] for j in (k - 1, k + 1) if 0 <= j < len(TEMPLATE_RADII_M)])
     # delta-correlated speckle (the Siegert premise) as a detector pixel sees it
     fits[("white", None)] = _fit_iotf(spectrum, variance, noise, _pixel_transfer_squared(tile))
     best = min(fits, key=chi2)

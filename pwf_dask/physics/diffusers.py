@@ -74,16 +74,24 @@ def _sphere_chord(yy, xx, rp):
 def _pyramid(yy, xx, rp, sides: int, turn: float):
     """A pyramid of height 2 rp over a regular polygon of apothem rp: thickness falls linearly
     from the apex to every facet's base edge."""
-    reach = None
-    for j in range(sides):  # the facets' maximum in place: one array, not a stack of them
-        facet = xx * np.cos(turn + 2 * np.pi * j / sides) + yy * np.sin(turn + 2 * np.pi * j / sides)
-        reach = facet if reach is None else np.maximum(reach, facet, out=reach)
-    return 2.0 * rp * np.clip(1.0 - reach / rp, 0, None)
+    # the facets' maximum and the slope in place: two arrays, not a stack of facets, and no
+    # fresh (page-faulting) array per pass on the large grains' kernels
+    reach = facet = None
+    for j in range(sides):
+        angle = turn + 2 * np.pi * j / sides
+        facet = np.add(xx * np.cos(angle), yy * np.sin(angle), out=facet)
+        reach = facet.copy() if reach is None else np.maximum(reach, facet, out=reach)
+    np.divide(reach, rp, out=reach)
+    np.subtract(1.0, reach, out=reach)
+    np.clip(reach, 0, None, out=reach)
+    return np.multiply(2.0 * rp, reach, out=reach)
 
 
 def _grain_kernels(rp: float, grain_shape: str, rng: np.random.Generator):
     """Thickness kernels (grid cells) of one grain size, averaged over 4 x 4 sub-samples of each
-    cell, and the share of the grains each kernel stands for."""
+    cell, and the share of the grains each kernel stands for. The kernel box reaches rp + 1
+    cells from the centre, so a triangle's tips (2 rp out) are cut: up to ~10 % of its volume
+    on large grains (``tests/test_calibration.py`` measures the volumes)."""
     half = int(np.ceil(rp)) + 1
     yy, xx = np.mgrid[-half : half + 1, -half : half + 1].astype(float)
     sub = (np.arange(4) + 0.5) / 4 - 0.5
@@ -96,10 +104,15 @@ def _grain_kernels(rp: float, grain_shape: str, rng: np.random.Generator):
             turn = rng.uniform(0, 2 * np.pi)
             profiles.append(lambda y, x, s=sides, a=turn: _pyramid(y, x, rp, s, a))
     kernels = []
-    # the 16 sub-samples of every cell at once (one array pass per profile, not 16)
-    dy, dx = (a.reshape(-1, 1, 1) for a in np.meshgrid(sub, sub, indexing="ij"))
+    # the 16 sub-samples of every cell at once (one array pass per profile, not 16), as
+    # (4, 1, n, 1) rows and (1, 4, 1, n) columns: each profile's x and y terms are formed on
+    # those and meet in one broadcast pass (the large grains' faceted kernels cost the template
+    # calibration half its time when both were full (16, n, n) grids)
+    cells = yy[:, 0]
+    y = (cells[None, :] + sub[:, None])[:, None, :, None]
+    x = (cells[None, :] + sub[:, None])[None, :, None, :]
     for profile in profiles:
-        k = profile(yy + dy, xx + dx).sum(axis=0) / 16.0
+        k = profile(y, x).reshape(16, *yy.shape).sum(axis=0) / 16.0
         kernels.append((yy.astype(int), xx.astype(int), k))
     if grain_shape == "mixed":  # half the grains round, half faceted
         shares = [0.5] + [0.5 / (len(kernels) - 1)] * (len(kernels) - 1)
@@ -218,7 +231,7 @@ def transmission(thickness_m: np.ndarray, energy_eV: float, material: str = DEFA
     return np.exp((-1j * d - b) * k * thickness_m)
 
 
-@lru_cache(maxsize=2)
+@lru_cache(maxsize=4)
 def _free_space_kernel(shape: tuple[int, int], spacing_m: float, wavelength: float, distance_m: float) -> np.ndarray:
     """:func:`pwf_dask.physics.optics.angular_spectrum_kernel` of :func:`coherent_speckle`'s grid,
     kept for the next call: the calibration's templates simulate 26 diffusers, nearly all on
@@ -241,10 +254,12 @@ def coherent_speckle(
     radius_spread: float = FEPA_SPREAD,
     seed: int = 0,
     oversample: int = 2,
+    fft_workers: int | None = None,
 ) -> np.ndarray:
     """|P_L{t}|^2 of a fresh diffuser ``distance_m`` before the detector, fully coherent beam,
     integrated over ``pixel_size_m`` pixels (the grains on a grid ``oversample`` times finer),
-    mean 1, without noise: the speckle whose spectrum the coherence blur multiplies."""
+    mean 1, without noise: the speckle whose spectrum the coherence blur multiplies.
+    ``fft_workers``: the propagation's FFT threads (default: this process's budget)."""
     s = int(oversample)
     ny, nx = frame_shape
     fine = (ny * s, nx * s)
@@ -263,7 +278,7 @@ def coherent_speckle(
     if distance_m == 0:
         v = t
     else:
-        fft = FFT.for_module(np)
+        fft = FFT.for_module(np, fft_workers)
         v = fft.ifft2(fft.fft2(t) * _free_space_kernel(fine, spacing, optics.wavelength_m(energy_eV), distance_m))
     intensity = (v.real**2 + v.imag**2).reshape(ny, s, nx, s).mean(axis=(1, 3))
     return intensity / intensity.mean()
