@@ -595,7 +595,9 @@ def retrieve_projection(
         ``phase`` (Im psi, rad) and ``attenuation`` (-Re psi) of the input's kind and shape,
         ``iterations``, ``converged``, the per-pixel ``residual`` and its ``residual_rmse`` (% of
         the mean reference), ``loss_history``, the coherence lengths used, and ``parameters``
-        (every choice made, e.g. the field grid and the diffuser fit).
+        (every choice made, e.g. the field grid and the diffuser fit; ``background_planes``:
+        the planes the background fit subtracted, [constant, row slope, column slope] per frame
+        height and width, or None).
 
     Raises
     ------
@@ -679,9 +681,11 @@ def retrieve_projection(
     )
     solved = _solve(build, _solver_run(y_full, opts), model, grid, opts.alpha, psi0, y, scale, excluded)
     phase, attenuation = _phase_and_attenuation(solved, opts.single_material, prior, geometry)
-    mask = None
+    mask, planes = None, None
     if opts.zero_background:
-        mask, phase, attenuation = _zeroed_background(phase, attenuation, background_mask, unseen if moved else None)
+        mask, phase, attenuation, planes = _zeroed_background(
+            phase, attenuation, background_mask, unseen if moved else None
+        )
     residual_pct = to_numpy(xp.abs(solved.sol.evaluation.r[solved.model.frame])) * 100.0
     return RetrievalResult(
         phase=xp.asarray(phase.astype(model.rdtype)),
@@ -708,7 +712,9 @@ def retrieve_projection(
             outliers=pair.outliers,
             reference_outliers=pair.reference_outliers,
             bad_pixels=pair.bad_pixels,
-        ),
+        )
+        # what the background fit took from the solver's psi: a scan's warm start adds it back
+        | {"background_planes": planes},
         background=mask,
     )
 
@@ -1182,13 +1188,16 @@ def _phase_and_attenuation(solved: _Solved, single_material: bool, prior: dict, 
 
 
 def _zeroed_background(phase, attenuation, background_mask, unseen):
-    """(background mask, phase, attenuation) with a plane fitted to the background pixels
-    subtracted (:mod:`pwf_dask.physics.background`); the given mask, else the detected one.
-    The mask comes back on the host, the images on their device."""
+    """(background mask, phase, attenuation, planes) with a plane fitted to the background
+    pixels subtracted (:mod:`pwf_dask.physics.background`); the given mask, else the detected
+    one. The mask comes back on the host, the images on their device; ``planes`` holds each
+    plane's [constant, row slope, column slope] (:func:`~pwf_dask.physics.background.plane_terms`)."""
     xp = get_array_module(phase)
     mask = xp.asarray(background_mask) if background_mask is not None else bg.detect_background(phase, attenuation)
     fit = mask if unseen is None else _seen_background(mask, xp.asarray(unseen))
-    return to_numpy(mask), bg.zero_background(phase, fit), bg.zero_background(attenuation, fit)
+    phase, phase_plane = bg.zeroed_with_plane(phase, fit)
+    attenuation, attenuation_plane = bg.zeroed_with_plane(attenuation, fit)
+    return to_numpy(mask), phase, attenuation, {"phase": phase_plane, "attenuation": attenuation_plane}
 
 
 def _seen_background(mask: np.ndarray, unseen: np.ndarray) -> np.ndarray:

@@ -41,6 +41,21 @@ def test_a_quadratic_background_is_removed_exactly_around_a_sample(rng):
     np.testing.assert_allclose(flat[disk > 0].mean(), -2.0, atol=5e-3)
 
 
+def test_the_plane_taken_off_is_kept_as_three_terms(rng):
+    """zeroed_with_plane: the same image as zero_background, and the plane it took off as
+    [constant, row slope, column slope] per frame height and width, which rebuild the image."""
+    ny, nx = 40, 70
+    yy, xx = np.mgrid[0:ny, 0:nx].astype(float)
+    disk = np.hypot(yy - 20, xx - 30) < 10
+    image = 0.3 + 0.2 * yy / (ny - 1) - 0.1 * xx / (nx - 1) - 2.0 * disk + rng.normal(0, 1e-4, (ny, nx))
+    zeroed, terms = bg.zeroed_with_plane(image, ~disk)
+    np.testing.assert_array_equal(zeroed, bg.zero_background(image, ~disk))
+    np.testing.assert_allclose(terms, [0.3, 0.2, -0.1], atol=2e-4)
+    np.testing.assert_allclose(zeroed + bg.plane_from_terms(terms, image.shape), image, atol=1e-12)
+    with pytest.raises(ValueError, match="fewer than"):
+        bg.zeroed_with_plane(image, np.zeros(image.shape, bool))
+
+
 def test_a_wide_tomogram_slice_is_searched_binned_and_fitted_at_full_resolution(rng):
     """Above BACKGROUND_SEARCH_PX the sample-free area is found on a binned copy (17x faster
     on 2560^2 slices); the quadratic under it still comes off at full resolution."""

@@ -160,6 +160,24 @@ def test_ablation_without_preconditioner_leaves_phase_near_zero(small_scene):
     assert gain(res.phase, sim.phase, sim.phase < -0.5) < 0.2
 
 
+def test_the_background_planes_rebuild_the_solvers_psi():
+    """``parameters["background_planes"]``: the zeroed phase and attenuation plus the planes
+    recorded are what the solver returned before the background fit (a scan's warm start)."""
+    from pwf_dask.physics.background import plane_from_terms
+
+    sim = simulate_projection(SpeckleSetup(shape=(64, 96), photons=1e4), seed=2)
+    common = kwargs(sim, max_iter=40, tol=0)
+    raw = retrieve_projection(sim.sample, sim.reference, zero_background=False, **common)
+    zeroed = retrieve_projection(sim.sample, sim.reference, **common)
+    assert raw.parameters["background_planes"] is None
+    planes = zeroed.parameters["background_planes"]
+    assert abs(planes["phase"][0]) > 1e-3  # something was taken off
+    for name in ("phase", "attenuation"):
+        rebuilt = getattr(zeroed, name) + plane_from_terms(planes[name], sim.sample.shape)
+        scale = float(np.abs(getattr(raw, name)).max())
+        np.testing.assert_allclose(rebuilt, getattr(raw, name), atol=1e-5 * scale, err_msg=name)
+
+
 @pytest.mark.slow
 def test_start_from_umpa_reaches_the_solution(small_scene):
     """``initial="umpa"``: PWF refines UMPA's one-image estimate to the same accuracy."""

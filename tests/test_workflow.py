@@ -297,6 +297,42 @@ def test_warm_started_chains_converge_faster_to_the_same_projections(tiny_scan, 
     assert not (tmp_path / "no.zarr").exists()
 
 
+def test_a_chain_starts_from_the_solvers_psi_of_the_projection_before(tiny_scan, tmp_path, monkeypatch):
+    """A warm start is PWF's own psi of the projection before (the stored result with the
+    background planes added back), not the background-zeroed one: each start equals, to
+    float32 rounding, the unzeroed psi of a projection retrieved earlier in the run."""
+    from pwf_dask import retrieval
+    from pwf_dask.physics.background import plane_from_terms
+
+    original = retrieval.retrieve_projection
+    solved, starts, lock = [], [], threading.Lock()
+
+    def recording(sample, reference, **kw):
+        res = original(sample, reference, **kw)
+        planes = res.parameters["background_planes"]
+        shape = np.shape(res.phase)
+        psi = -(res.attenuation + plane_from_terms(planes["attenuation"], shape))
+        psi = psi + 1j * (res.phase + plane_from_terms(planes["phase"], shape))
+        with lock:
+            solved.append((psi, -res.attenuation + 1j * res.phase))
+            if not isinstance(kw.get("initial", "zero"), str):
+                starts.append(np.asarray(kw["initial"]))
+        return res
+
+    monkeypatch.setattr(retrieval, "retrieve_projection", recording)
+    recon = tmp_path / "r.zarr"
+    workflow.retrieve_scan(tiny_scan, recon, angle_chain=3, **FAST)
+    assert len(starts) == len(solved) - 2 * 2 * 2  # 2 positions x 2 halves x 2 chains start from zero
+    for start in starts:
+        misfit = [np.abs(start - psi).max() / np.abs(psi).max() for psi, _ in solved]
+        k = int(np.argmin(misfit))
+        assert misfit[k] < 1e-5
+        assert np.abs(start - solved[k][1]).max() > 1e-3 * np.abs(solved[k][1]).max()  # not the zeroed one
+    ds = xr.open_zarr(recon)
+    assert ds["background_plane_phase"].dims == ("position", "angle", "plane_term")
+    assert np.isfinite(ds["background_plane_phase"].values).all()
+
+
 def test_resume_refuses_other_parameters(tiny_scan, tmp_path):
     recon = tmp_path / "r.zarr"
     workflow.retrieve_scan(tiny_scan, recon, **FAST)

@@ -35,7 +35,15 @@ def _powers(n: int, degree: int, xp=np):
 
 def fit_surface(image, mask, degree: int = 1):
     """Least-squares polynomial surface of ``degree`` (1: plane, 2: quadratic) through
-    ``image[mask]``, evaluated everywhere.
+    ``image[mask]``, evaluated everywhere (:func:`surface_coefficients`, :func:`evaluate_surface`)."""
+    xp = get_array_module(image, mask)
+    return evaluate_surface(surface_coefficients(image, mask, degree), image.shape, xp)
+
+
+def surface_coefficients(image, mask, degree: int = 1) -> np.ndarray:
+    """The least-squares surface of :func:`fit_surface` as coefficients: a host array ``c`` of
+    (degree + 1)^2 with the surface sum_ij c[i, j] y^i x^j, y and x the row and column
+    scaled to [0, 1] (terms of total degree above ``degree`` are 0).
 
     The terms y^i x^j separate, so every sum the normal equations need is a product of small
     matrices, sum_mask y^a x^b z = Y_a^T (mask z) X_b: two passes over the image whatever the
@@ -57,7 +65,27 @@ def fit_surface(image, mask, degree: int = 1):
     c = np.zeros((degree + 1, degree + 1))
     for (i, j), value in zip(terms, coef):
         c[i, j] = value
-    return y_pow[:, : degree + 1] @ xp.asarray(c) @ x_pow[:, : degree + 1].T
+    return c
+
+
+def evaluate_surface(coefficients, shape: tuple[int, int], xp=np):
+    """The surface of :func:`surface_coefficients` on a frame of ``shape`` (float64)."""
+    c = np.asarray(coefficients, dtype=np.float64)
+    degree = c.shape[0] - 1
+    return _powers(shape[0], degree, xp) @ xp.asarray(c) @ _powers(shape[1], degree, xp).T
+
+
+def plane_terms(coefficients) -> list[float]:
+    """A plane's coefficients (:func:`surface_coefficients`, degree 1) as [constant, row
+    slope, column slope] (per frame height and width): what a store keeps per projection."""
+    c = np.asarray(coefficients, dtype=np.float64)
+    return [float(c[0, 0]), float(c[1, 0]), float(c[0, 1])]
+
+
+def plane_from_terms(terms, shape: tuple[int, int], xp=np):
+    """The plane [constant, row slope, column slope] of :func:`plane_terms` on a frame of ``shape``."""
+    a, b, c = (float(t) for t in terms)
+    return evaluate_surface(np.array([[a, c], [b, 0.0]]), shape, xp)
 
 
 def fit_plane(image, mask):
@@ -123,3 +151,14 @@ def zero_background(image, background, degree: int = 1):
         raise ValueError(f"background mask has fewer than {MIN_BACKGROUND_PIXELS} pixels: cannot fit a surface")
     xp = get_array_module(image)
     return image - fit_surface(xp.asarray(image, dtype=xp.float64), background, degree)
+
+
+def zeroed_with_plane(image, background):
+    """(``image`` minus the plane fitted over ``background``, the plane's :func:`plane_terms`):
+    :func:`zero_background` that also says what it took away, so that the solver's own psi
+    can be rebuilt from a stored projection (a warm start; :func:`plane_from_terms`)."""
+    if int(background.sum()) < MIN_BACKGROUND_PIXELS:
+        raise ValueError(f"background mask has fewer than {MIN_BACKGROUND_PIXELS} pixels: cannot fit a surface")
+    xp = get_array_module(image)
+    c = surface_coefficients(xp.asarray(image, dtype=xp.float64), background, 1)
+    return image - evaluate_surface(c, image.shape, xp), plane_terms(c)

@@ -338,6 +338,8 @@ VARIABLE_ATTRS: dict[str, tuple[str, str]] = {
     "preview_residual": ("percent", "data residual |y - f| of the first angle's projection (preview)"),
     "diffuser_drift_y_px": ("pixel", "measured speckle drift against the reference, rows"),
     "diffuser_drift_x_px": ("pixel", "measured speckle drift against the reference, columns"),
+    "background_plane_phase": ("rad", "plane subtracted from the phase (constant, row and column slopes per frame)"),
+    "background_plane_attenuation": ("1", "plane subtracted from the attenuation (constant, row and column slopes)"),
     "delta": ("1", "refractive index decrement delta"),
     "beta": ("1", "absorption index beta"),
     "tomo_done": ("1", "bookkeeping: 1 where this row block's slices are reconstructed (resume)"),
@@ -484,6 +486,10 @@ def _build_reconstruction(path: str, info: ScanInfo, params: dict) -> None:
     # the speckle's measured drift (the multi-image trackers: the mean over the K positions)
     for name in ("diffuser_drift_y_px", "diffuser_drift_x_px"):
         create_variable(g, name, (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
+    # what the background fit took from PWF's psi: a warm-started chain adds it back to start
+    # from the solver's own psi (a tilt left out moves the whole speckle; workflow._start_psi)
+    for name in ("background_plane_phase", "background_plane_attenuation"):
+        create_variable(g, name, (npos, nang, 3), (1, 1, 3), ("position", "angle", "plane_term"), "float64", np.nan)
     attrs = {k: v for k, v in info.attrs.items() if isinstance(v, (int, float, str, bool))}
     attrs.update({k: v for k, v in params.items() if isinstance(v, (int, float, str, bool)) or v is None})
     attrs["pwf_dask_parameters"] = json.dumps(params, default=str)
