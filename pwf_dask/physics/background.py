@@ -147,18 +147,21 @@ def detect_background(
 
 def zero_background(image, background, degree: int = 1):
     """``image`` minus the surface (plane by default) fitted over ``background`` pixels."""
-    if int(background.sum()) < MIN_BACKGROUND_PIXELS:
-        raise ValueError(f"background mask has fewer than {MIN_BACKGROUND_PIXELS} pixels: cannot fit a surface")
+    _require_background(background)
     xp = get_array_module(image)
     return image - fit_surface(xp.asarray(image, dtype=xp.float64), background, degree)
+
+
+def _require_background(background) -> None:
+    if int(background.sum()) < MIN_BACKGROUND_PIXELS:
+        raise ValueError(f"background mask has fewer than {MIN_BACKGROUND_PIXELS} pixels: cannot fit a surface")
 
 
 def zeroed_with_plane(image, background):
     """(``image`` minus the plane fitted over ``background``, the plane's :func:`plane_terms`):
     :func:`zero_background` that also says what it took away, so that the solver's own psi
     can be rebuilt from a stored projection (a warm start; :func:`plane_from_terms`)."""
-    if int(background.sum()) < MIN_BACKGROUND_PIXELS:
-        raise ValueError(f"background mask has fewer than {MIN_BACKGROUND_PIXELS} pixels: cannot fit a surface")
+    _require_background(background)
     xp = get_array_module(image)
     c = surface_coefficients(xp.asarray(image, dtype=xp.float64), background, 1)
     return image - evaluate_surface(c, image.shape, xp), plane_terms(c)

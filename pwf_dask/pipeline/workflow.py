@@ -335,7 +335,9 @@ def _start_psi(recon_path, item) -> np.ndarray:
     carries a tilt PWF's own solution did not have, and a tilt moves the whole speckle: on
     the full-width paper scan a projection restarted from its own stored result began at 13x
     its converged data misfit (22.5 against 1.73) and took 313 iterations; its neighbour
-    from the solver's psi began at 3.8 (session 44). Stores without the planes start as before."""
+    from the solver's psi began at 3.8 (session 44). Stores without the planes start as before;
+    with the single-material prior the stored phase's low frequencies are the prior's, so the
+    start is PWF's psi only up to them."""
     import zarr
 
     from pwf_dask.physics.background import plane_from_terms
