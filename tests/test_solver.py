@@ -201,6 +201,20 @@ def test_curvature_probe_stays_linear_on_a_bright_spot(rng, monkeypatch):
     assert uncapped > 3 * linear, (uncapped, linear)
 
 
+def test_j_is_stationary_only_when_its_best_neither_falls_nor_rises():
+    """The J test: the best J of the last window within jtol of the window's before. A window
+    whose best lies above (J rippling after a momentum restart) is not stationary: passed as
+    such, it stopped every full-width projection 2 % of the phase short (session 45)."""
+    falling = [2.0 - 0.01 * k for k in range(40)]
+    assert not solver._stationary(falling, 1e-5, 20)
+    flat = [1.7 * (1 + 1e-7 * ((-1) ** k)) for k in range(40)]  # rounding either way
+    assert solver._stationary(flat, 1e-5, 20)
+    rippling = [1.745] * 20 + [1.746 + 0.004 * abs(np.sin(k)) for k in range(20)]
+    assert not solver._stationary(rippling, 1e-5, 20)
+    assert not solver._stationary(flat[:39], 1e-5, 20)  # too few iterations yet
+    assert not solver._stationary(flat, 0.0, 20)  # jtol = 0 switches it off
+
+
 def test_low_band_test_waits_for_a_creep_and_accepts_a_geometric_tail():
     """A low band creeping at a constant rate is not settled (J may no longer move while the
     phase of wide objects does); a geometric tail whose extrapolated rest is small is."""
