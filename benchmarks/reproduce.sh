@@ -25,6 +25,7 @@
 #   field_grid.*       ~15 min: phase gain and iteration cost of the field grid 1x-2x on P3000 scenes
 #   paper_figures.*    ~1.5 min: the paper's Fig. 2 and Fig. 3 on simulated scenes, PWF beside LCS K=12
 #   bench_fullwidth_cpu.* ~2.5 h: 801 angles x 32 x 2560 through pwf-dask run, the full scan modelled
+#   warm_stop.*        ~3 min after fullwidth (WORK_DIR=its --work-dir): the stop's jtol against the true phase
 set -euo pipefail
 PWF=${PWF:-.venv/bin/pwf-dask}
 OUT=${OUT:-benchmarks/results}
@@ -51,9 +52,10 @@ case "${1:-all}" in
   fbp) "$PWF" bench fbp --out "$OUT" ;;
   perscan) "$PWF" bench perscan --out "$OUT" ;;
   fullwidth) "$PWF" bench fullwidth --out "$OUT" ;;
+  warm-stop) "$(dirname "$PWF")/python" -m benchmarks.warm_stop "${WORK_DIR:?set WORK_DIR to the fullwidth bench --work-dir}" --out "$OUT" ;;
   field-grid) "$(dirname "$PWF")/python" -m benchmarks.field_grid --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
     for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-camera edge-step demo-dose random-scenes diffuser-models fbp perscan field-grid paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-camera|edge-step|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|paper-figures|fullwidth|all]" >&2; exit 2 ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-camera|edge-step|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
 esac

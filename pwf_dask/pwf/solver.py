@@ -261,7 +261,7 @@ def pwf(
     the stop also needs the extrapolated remaining change, step * rho / (1 - rho), with the
     linear rate rho from the mean rms steps of two successive ``window``-iteration windows of
     the current momentum run (:func:`_settled`), below ``rtol`` times rms(psi) (``rtol`` = 0
-    disables this test), or J stationary: its best value lowered by less than ``jtol``
+    disables this test), or J stationary: its best value changed by less than ``jtol``
     (relative) from one window to the next (:func:`_stationary`; ``jtol`` = 0 disables it)
     while the phase's structure wider than ``low_band_px`` has settled as well
     (:func:`_low_band_settled`, ``low_band_px`` = 0 leaves it out).
