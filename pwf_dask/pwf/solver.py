@@ -262,7 +262,8 @@ def pwf(
     linear rate rho from the mean rms steps of two successive ``window``-iteration windows of
     the current momentum run (:func:`_settled`), below ``rtol`` times rms(psi) (``rtol`` = 0
     disables this test), or J stationary: its best value changed by less than ``jtol``
-    (relative) from one window to the next (:func:`_stationary`; ``jtol`` = 0 disables it)
+    (relative) from one window to the next over each of the last two windows (:func:`_stationary`;
+    ``jtol`` = 0 disables it)
     while the phase's structure wider than ``low_band_px`` has settled as well
     (:func:`_low_band_settled`, ``low_band_px`` = 0 leaves it out).
 
