@@ -116,9 +116,11 @@ def iteration_seconds(
     shape: tuple[int, int], field_upsample: float = 1, l1_zero: bool = False, fft_workers: int = 1, pad: int = 17
 ) -> float:
     """One PWF iteration of ``shape``'s padded grid: the solver's own loop (stop statistics,
-    restarts and Nesterov included) on a random diffuser: a 3-iteration run less a 1-iteration
-    run (each pays the same set-up), halved, the fastest of two rounds, as ``bench iteration``
-    times it."""
+    restarts and Nesterov included) on a random diffuser: a (1 + n)-iteration run less a
+    1-iteration run (each pays the same set-up), over n, the fastest of two rounds, as
+    ``bench iteration`` times it. n starts at 2 and grows 4x (to 128) while the n iterations
+    are under a quarter of the short run: on a small grid two iterations sit inside the run's
+    own timing noise (112^2 under a test suite's load read 0 s)."""
     from pwf_dask.backend import FFT
     from pwf_dask.pwf import solver
 
@@ -132,9 +134,14 @@ def iteration_seconds(
         return time.perf_counter() - t
 
     run(1)  # compiles the fused passes and checks the FFT layouts once, as a task's first iteration does
-    # the fastest of two interleaved rounds of each (a shared machine's noise only adds)
-    ones, threes = zip(*[(run(1), run(3)) for _ in range(2)])
-    return max((min(threes) - min(ones)) / 2, 0.0)
+    extra = 2
+    while True:
+        # the fastest of two interleaved rounds of each (a shared machine's noise only adds)
+        ones, longer = zip(*[(run(1), run(1 + extra)) for _ in range(2)])
+        spent = min(longer) - min(ones)
+        if spent > 0.25 * min(ones) or extra >= 128:
+            return max(spent / extra, 0.0)
+        extra *= 4
 
 
 def measure_speeds(
