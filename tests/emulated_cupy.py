@@ -360,6 +360,15 @@ def _cupyx() -> dict[str, types.ModuleType]:
     cupyx.scipy.ndimage = types.ModuleType("cupyx.scipy.ndimage")
     for name in NDIMAGE:
         setattr(cupyx.scipy.ndimage, name, _device(getattr(scipy.ndimage, name)))
+    dilation = cupyx.scipy.ndimage.binary_dilation
+
+    def binary_dilation(input, structure=None, iterations=1, *args, brute_force=False, **kwargs):
+        # cupyx/scipy/ndimage/_morphology.py: more than one iteration only by brute force
+        if iterations != 1 and not brute_force:
+            raise NotImplementedError("only brute_force iteration has been implemented")
+        return dilation(input, structure, iterations, *args, brute_force=brute_force, **kwargs)
+
+    cupyx.scipy.ndimage.binary_dilation = binary_dilation
     return {"cupyx": cupyx, "cupyx.scipy": cupyx.scipy, "cupyx.scipy.ndimage": cupyx.scipy.ndimage}
 
 

@@ -137,7 +137,8 @@ def detect_background(
         if at is not None:
             sample |= at - fit_plane(at, mask) > k * sig_a
         if margin_px:
-            sample = nd.binary_dilation(sample, iterations=margin_px)
+            # CuPy grows by more than one pixel only brute force (the same mask, by definition)
+            sample = nd.binary_dilation(sample, iterations=margin_px, brute_force=xp is not np)
         new = ~sample
         if int(new.sum()) < 0.02 * new.size or bool(xp.array_equal(new, mask)):
             break
