@@ -8,7 +8,11 @@
 - ``strip ANGLES``: a 32 x 2560 paper-optics scan of ANGLES angles through ``retrieve_scan``
   on the GPU, with and without the task streams: iterations per projection and wall time.
 
-``python -m benchmarks.gpu_checks OUT_DIR memory|threads|strip [ANGLES]``: one JSON line per row
+- ``camera [ROWS COLUMNS]``: the paper preset's projection on the whole 2160 x 2560 camera frame
+  (``frame_size_camera.md``'s last row) retrieved on the device, calibrated and with the lengths
+  given, the CUDA kernels off and on: gain, error, iterations and seconds.
+
+``python -m benchmarks.gpu_checks OUT_DIR memory|threads|strip [ANGLES]|camera``: one JSON line per row
 on stdout, and ``OUT_DIR/<part>.json``. Session 42's rows: ``benchmarks/results/memory_model_gpu.md``
 and docs/benchmarks.md ("On a GPU").
 """
@@ -151,6 +155,67 @@ def strip_rows(angles: int) -> list[dict]:
     return rows
 
 
+def camera_rows(cp, shape=(2160, 2560), seed: int = 0) -> list[dict]:
+    """The ``paper`` preset's first projection on the whole camera frame (``frame_size_camera.md``'s
+    last row, simulated on the host), retrieved on the device: with PWF's defaults (coherence
+    calibrated, as that row), then with those lengths given (the solve alone, as a scan's task
+    runs once the scan is calibrated), with the CUDA kernels off and on. A 256^2 crop is
+    retrieved first so that compiling kernels and making FFT plans is not timed."""
+    from dataclasses import replace
+
+    from benchmarks.frame_size import phase_gain, phase_rms_error
+    from pwf_dask.pwf import kernels
+    from pwf_dask.simulation import GEOMETRY_KEYS, SpeckleSetup, SpeckleSimulator
+    from pwf_dask.simulation.phantoms import PAPER_BEAD_RADIUS_M, scan_phantom
+
+    t0 = time.perf_counter()
+    setup = replace(SpeckleSetup(), shape=tuple(shape))
+    phantom = scan_phantom(setup.shape, setup.pixel_size_m, seed, bead_radius_range_m=PAPER_BEAD_RADIUS_M)
+    sim = SpeckleSimulator(setup, seed=seed)
+    sample, phase, _ = sim.project(phantom)
+    reference = sim.reference()
+    del sim
+    print(json.dumps({"simulated_s": time.perf_counter() - t0}), flush=True)
+    geometry = {name: getattr(setup, name) for name in GEOMETRY_KEYS if not name.startswith("coherence")}
+
+    def retrieve(sample, reference, fused: bool, **options):
+        saved, kernels.cuda_kernels = kernels.cuda_kernels, fused
+        try:
+            cp.cuda.Stream.null.synchronize()
+            t0 = time.perf_counter()
+            r = retrieve_projection(cp.asarray(sample), cp.asarray(reference), **geometry, **options)
+            recovered = cp.asnumpy(r.phase)
+            return r, recovered, time.perf_counter() - t0
+        finally:
+            kernels.cuda_kernels = saved
+
+    retrieve(sample[:256, :256], reference[:256, :256], False, max_iter=20)
+    retrieve(sample[:256, :256], reference[:256, :256], True, max_iter=20)
+    rows, lengths = [], {}
+    for coherence, fused in (("calibrated", False), ("given", False), ("given", True)):
+        r, recovered, seconds = retrieve(sample, reference, fused, **lengths)
+        lengths = {
+            "coherence_length_x_m": r.coherence_length_x_m,
+            "coherence_length_y_m": r.coherence_length_y_m,
+        }
+        rows.append(
+            dict(
+                frame=f"{shape[0]}x{shape[1]}",
+                coherence=coherence,
+                cuda_kernels=fused,
+                phase_gain=phase_gain(recovered, phase),
+                phase_rms_error_rad=phase_rms_error(recovered, phase),
+                iterations=r.iterations,
+                stop=r.parameters.get("stop_reason"),
+                field_upsample=r.parameters.get("field_upsample"),
+                coherence_x_um=1e6 * r.coherence_length_x_m,
+                seconds=seconds,
+            )
+        )
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
 def main(argv=None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     out, part = argv[0], argv[1]
@@ -160,10 +225,12 @@ def main(argv=None) -> None:
         rows = memory_rows(cp, rng)
     elif part == "threads":
         rows = thread_rows(cp, rng)
+    elif part == "camera":
+        rows = camera_rows(cp, tuple(int(n) for n in argv[2:4]) if len(argv) > 3 else (2160, 2560))
     elif part == "strip":
         rows = strip_rows(int(argv[2]) if len(argv) > 2 else 101)
     else:
-        raise SystemExit(f"unknown part {part!r}: memory, threads or strip")
+        raise SystemExit(f"unknown part {part!r}: memory, threads, strip or camera")
     with open(f"{out}/{part}.json", "w") as f:
         json.dump(rows, f, indent=1)
 

@@ -8,7 +8,7 @@ had about thirty of them (issue #31). The compiled loops accumulate sums in floa
 :func:`pwf_dask.backend.inner` does, so they agree with the NumPy expressions to float32
 rounding (``tests/test_kernels.py``). On a CUDA device the same loops are written as CuPy
 element-wise and reduction kernels (:data:`_CUDA_KERNELS`, compiled on first use; opt-in with
-``PWF_DASK_CUDA_KERNELS=1`` until verified on a device, :data:`cuda_kernels`): CuPy runs each NumPy
+``PWF_DASK_CUDA_KERNELS=1`` until a device measures them faster, :data:`cuda_kernels`): CuPy runs each NumPy
 operation as its own kernel, so ``(f - y) * mask`` and its sum of squares cost four launches and
 four memory passes there too, and the launches, not the bandwidth, bound an iteration below
 about 1024^2 (issue #31: 1.8 ms at 512^2 against a 0.03 ms FFT on an H100). The CPU emulator
@@ -68,11 +68,11 @@ def _cpu(*arrays) -> bool:
 
 
 #: whether CuPy arrays go through the CUDA kernels below (``PWF_DASK_CUDA_KERNELS=1``). Off by
-#: default until a device run passes ``tests/test_kernels.py`` with them: on an H100 (session 42)
-#: intensity, the masked residual, its sum, times_conj and weighted_power compiled and ran inside
-#: retrievals; descent failed (CuPy infers no type placeholder from a scalar), was rewritten after
-#: the last device call, and it, uphill and momentum have not run on a device. Off: the
-#: array-module form, as the CPU emulator runs it
+#: default: on an H200 (session 48) every kernel gave the CuPy expressions' numbers
+#: (``tests/test_kernels.py`` passed on the device) and a full-frame retrieval the same phase to
+#: 3e-4 rad, but an iteration took 3.7 ms without them and 13.1 ms with them at 2160 x 2560 (1.0x
+#: at 512^2): each sum to a scalar ran on one block (:func:`_cuda_sum` now reduces rows first,
+#: not yet timed on a device). Off: the array-module form, as the CPU emulator runs it
 cuda_kernels = os.environ.get("PWF_DASK_CUDA_KERNELS", "0") == "1"
 _CUDA_COMPILED: dict = {}
 
@@ -98,6 +98,18 @@ def _cuda_kernel(xp, name: str):
             kernel = xp.ReductionKernel(*spec, name=f"pwf_{name}", reduce_type="double")
         _CUDA_COMPILED[name] = kernel
     return _CUDA_COMPILED[name]
+
+
+def _cuda_sum(xp, name: str, *arrays) -> float:
+    """The reduction kernel ``name`` over all of ``arrays``, as a float. CuPy launches one block
+    per output element of a reduction kernel: a sum to one scalar ran on one block of one
+    multiprocessor, 1-2 ms a pass at 2160 x 2560 (an H200, session 48: the kernels made an
+    iteration 3.7 -> 13.1 ms). Each row is reduced by a block of its own, and the row totals
+    by CuPy's sum."""
+    kernel = _cuda_kernel(xp, name)
+    if arrays[0].ndim < 2:
+        return float(kernel(*arrays))
+    return float(kernel(*arrays, axis=-1).sum())
 
 
 # --- the compiled loops: flat, contiguous operands --------------------------------------------
@@ -264,7 +276,7 @@ def residual_and_loss(f, y, mask=None):
     xp = _cuda(f, y)
     if xp is not None and f.dtype == y.dtype:
         r = f - y if mask is None else _cuda_kernel(xp, "residual_masked")(f, y, mask)
-        return r, float(_cuda_kernel(xp, "sum_sq")(r))
+        return r, _cuda_sum(xp, "sum_sq", r)
     xp = get_array_module(f)
     r = f - y
     if mask is not None:
@@ -292,7 +304,7 @@ def weighted_power(a, w) -> float:
         return float(_jit("weighted_power")(*_flat(a, w)))
     xp = _cuda(a, w)
     if xp is not None and a.shape == w.shape:
-        return float(_cuda_kernel(xp, "weighted_power")(a, w))
+        return _cuda_sum(xp, "weighted_power", a, w)
     xp = get_array_module(a)
     power = xp.square(a.real) + xp.square(a.imag)
     power *= w
@@ -329,7 +341,7 @@ def descent_point(psi, d, phi_prev, eta: float):
     xp = _cuda(psi, d, phi_prev)
     if xp is not None and psi.dtype == d.dtype == phi_prev.dtype:
         phi = _cuda_kernel(xp, "descent")(psi, d, psi.dtype.type(eta))
-        return phi, float(_cuda_kernel(xp, "uphill")(d, phi, phi_prev))
+        return phi, _cuda_sum(xp, "uphill", d, phi, phi_prev)
     from pwf_dask.backend import inner
 
     phi = d * (-eta)
