@@ -20,6 +20,7 @@ and docs/benchmarks.md ("On a GPU").
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -128,6 +129,8 @@ def strip_rows(angles: int) -> list[dict]:
     from pwf_dask.simulation import simulate_scan
 
     scan = "/tmp/pwf_gpu_strip.zarr"
+    for path in (scan, *(f"/tmp/pwf_gpu_strip_{streams}.zarr" for streams in (True, False))):
+        shutil.rmtree(path, ignore_errors=True)  # the last run's: stores are never written over
     simulate_scan(scan, preset="paper", shape=(32, 2560), angles=angles, positions=1, seed=0, progress=False)
     rows = []
     for streams in (True, False):
