@@ -42,9 +42,9 @@ TOMO_BYTES = {"backproject": (19.6, 18.6), "gridrec": (25.9, 18.8)}
 #: FSC: two float32 volumes, then the transform of each (complex64 half spectra) and slabs
 FSC_BYTES_PER_VOXEL = 8.0 + 16.0
 #: iterations per projection assumed when none is given: the mean of the full-width scan of the
-#: paper's optics (``bench fullwidth``: 254 in session 46, chains of 8 with the J test's jtol 3e-5;
-#: 356 in session 45 at 1e-5, 347 in session 43, 339 in session 32)
-DEFAULT_ITERATIONS = 255
+#: paper's optics (``bench fullwidth``: 261 in session 48, chains of 8, the J test's jtol 3e-5
+#: over two windows; 254 in session 46 over one, 356 in session 45 at 1e-5, 347 in session 43)
+DEFAULT_ITERATIONS = 261
 #: the sample field's grid assumed when none is given: the 1.5x grid that coarse diffusers such
 #: as the paper's P3000 take (``field_upsample="auto"``); fine grains stay on the detector grid (1)
 DEFAULT_FIELD_UPSAMPLE = 1.5
