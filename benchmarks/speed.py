@@ -476,8 +476,9 @@ def run_per_scan_benchmark(out_dir: str | Path, quick: bool = False) -> list[dic
     ]
     lines += [
         "",
-        "The calibration's cost is its templates (simulated speckle of 13 grain sizes on tiles of at least",
-        "256 px), nearly independent of the frame, so its share falls with the frame: per scan it is paid once",
+        "The calibration's cost is its templates (simulated speckle of up to 11 grain sizes, 8 at the paper's",
+        "pixel, on frames of at least 256 px), nearly independent of the frame, so its share falls with the",
+        "frame: per scan it is paid once",
         "per position, against one projection's retrieval for every angle (801 in the paper's scan).",
     ]
     (Path(out_dir) / "bench_per_scan_cpu.md").write_text("\n".join(lines) + "\n")

@@ -336,6 +336,41 @@ def test_the_compiled_splat_adds_what_the_index_arrays_add(monkeypatch):
     np.testing.assert_allclose(*screens, rtol=1e-12, atol=1e-20)
 
 
+def test_the_compiled_template_passes_give_numpys_speckle(monkeypatch):
+    """diffusers.coherent_speckle: the compiled screen exp(-k (i delta + beta) T) and pixel-binned
+    |v|^2 give what NumPy's complex exp and mean give (the screen to the bit, the binning to the
+    order of its additions), with and without propagation."""
+    from pwf_dask.physics import diffusers
+
+    if diffusers._template_loops() is None:
+        pytest.skip("numba is not installed")
+    geo = dict(pixel_size_m=0.65e-6, energy_eV=10_000.0, radius_median_m=3.25e-6, seed=4, oversample=3)
+    compiled = [diffusers.coherent_speckle((40, 56), distance_m=d, **geo) for d in (0.0, 0.02)]
+    monkeypatch.setattr(diffusers, "_template_loops", lambda: None)
+    plain = [diffusers.coherent_speckle((40, 56), distance_m=d, **geo) for d in (0.0, 0.02)]
+    for a, b in zip(compiled, plain):
+        assert a.std() > 0.05
+        np.testing.assert_allclose(a, b, rtol=1e-13)
+    thickness = np.random.default_rng(0).random((8, 8)) * 3e-6
+    d, b = diffusers.delta_beta("silicon carbide", 10_000.0)
+    rate = complex(-b, -d) * 2 * np.pi / optics.wavelength_m(10_000.0)
+    monkeypatch.undo()
+    assert np.array_equal(diffusers._template_loops()[0](thickness, rate), diffusers.transmission(thickness, 10_000.0))
+
+
+def test_template_grain_radii_stop_at_twelve_pixels():
+    """coherence.template_radii_m: steps of 2^(1/2) from 0.5 um, up to 12 detector pixels (past
+    which a grain's spectrum over the fitted band is one shape: docs/methods.md), all of them on
+    coarse pixels, and at least the smallest on any."""
+    from pwf_dask.calibration import coherence
+
+    paper = coherence.template_radii_m(0.65e-6)
+    assert len(paper) == 8 and paper[0] == 0.5e-6 and max(paper) <= 12 * 0.65e-6 < 2**0.5 * max(paper)
+    np.testing.assert_allclose(np.diff(np.log2(paper)), 0.5)
+    assert coherence.template_radii_m(6.5e-6) == coherence.TEMPLATE_RADII_M
+    assert coherence.template_radii_m(1e-8) == coherence.TEMPLATE_RADII_M[:1]
+
+
 @pytest.mark.parametrize("rp", [2.7, 20.0])
 def test_grain_kernels_hold_the_grains_volumes(rp):
     """diffusers._grain_kernels: a sphere's chords add up to 4/3 pi r^3, a pyramid of height 2r

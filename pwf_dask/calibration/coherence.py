@@ -102,9 +102,19 @@ FIT_MIN_FREQUENCY = 0.06
 FIT_MIN_SIGNAL_TO_NOISE = 3.0
 #: the fewest such frequencies a fit of (log A, x^2, y^2) is made on
 FIT_MIN_POINTS = 12
-#: median grain radii of the templates (0.5-16 um in steps of 2^(1/4)); searched on every
-#: second radius first, then on the two neighbours of the best
-TEMPLATE_RADII_M = tuple(0.5e-6 * 2 ** (k / 4) for k in range(21))
+#: median grain radii of the templates: 0.5-16 um in steps of 2^(1/2), each fitted. Steps of
+#: 2^(1/4) (the best's two neighbours searched after every second radius) gained nothing on
+#: the 80 references of ``benchmarks/calibration_sweep.py`` (within 5 %: 57 of 80 either way)
+#: and cost two templates more
+TEMPLATE_RADII_M = tuple(0.5e-6 * 2 ** (k / 2) for k in range(11))
+#: largest template grain radius in detector pixels. A coarser grain's first spectral zero
+#: (0.61 / r cycles/px) lies below :data:`FIT_MIN_FREQUENCY`: over the fitted band its
+#: spectrum is the edges' tail, of one shape from ~6 px on (log-residual 0.05-0.09 at 0.65 um
+#: pixels) but for a Gaussian factor that trades against the IOTF's width, so the data cannot
+#: choose among such templates (a flat chi^2). Picked on 20 of the 80 references (the worst
+#: errors among them: faceted 3.2 um grains +7.4 %, 2 / 2.5 um coherence +23.9 %), they cost
+#: 40 % of the fit (frames of 16 radii). docs/methods.md, "Coherence calibration".
+TEMPLATE_MAX_RADIUS_PX = 12.0
 TEMPLATE_SEEDS = (1, 2)
 #: methods of :func:`fit_coherence_lengths`
 COHERENCE_METHODS = ("template", "gaussian")
@@ -259,6 +269,13 @@ def _template_spectra(geometry: tuple, radii) -> list[np.ndarray]:
         return [started[radius].result() for radius in radii]
 
 
+def template_radii_m(pixel_size_m: float) -> tuple[float, ...]:
+    """The grain radii of :data:`TEMPLATE_RADII_M` up to :data:`TEMPLATE_MAX_RADIUS_PX` pixels
+    (the smallest one on any pixel)."""
+    kept = tuple(r for r in TEMPLATE_RADII_M if r <= TEMPLATE_MAX_RADIUS_PX * pixel_size_m)
+    return kept or TEMPLATE_RADII_M[:1]
+
+
 def _fit_iotf(spectrum, variance, noise: float, template):
     """Weighted least squares of log(S - N) = log A + log T - pi (u^2 x^2 + v^2 y^2): the
     template T times Eq. (IOTF) squared, linear in (log A, x^2, y^2) with u, v in cycles per
@@ -357,20 +374,12 @@ def fit_coherence_lengths(
     geometry = (tile, float(pixel_size_m), float(energy_eV), float(diffuser_detector_distance_m), diffuser_material)
     fits: dict[tuple[str, float | None], tuple | None] = {}
 
-    def fit_grains(radii) -> None:
-        for radius, template in zip(radii, _template_spectra(geometry, radii)):
-            fits[("mixed grains", radius)] = _fit_iotf(spectrum, variance, noise, template)
-
-    def chi2(key) -> float:
-        found = fits[key]
-        return math.inf if found is None else found[2]
-
-    fit_grains(TEMPLATE_RADII_M[::2])
-    k = TEMPLATE_RADII_M.index(min(fits, key=chi2)[1])
-    fit_grains([TEMPLATE_RADII_M[j] for j in (k - 1, k + 1) if 0 <= j < len(TEMPLATE_RADII_M)])
+    radii = template_radii_m(pixel_size_m)
+    for radius, template in zip(radii, _template_spectra(geometry, radii)):
+        fits[("mixed grains", radius)] = _fit_iotf(spectrum, variance, noise, template)
     # delta-correlated speckle (the Siegert premise) as a detector pixel sees it
     fits[("white", None)] = _fit_iotf(spectrum, variance, noise, _pixel_transfer_squared(tile))
-    best = min(fits, key=chi2)
+    best = min(fits, key=lambda key: math.inf if fits[key] is None else fits[key][2])
     if fits[best] is None:
         raise ValueError(
             f"coherence-length fit failed: {_unresolved_blur_reason(spectrum, noise)}; "

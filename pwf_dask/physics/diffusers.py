@@ -180,7 +180,7 @@ def _splat(thickness, shape, cy, cx, ky, kx, kernel) -> None:
     The same sum as convolving the grains' impulses with the kernel by FFT, which the grains'
     sparsity makes wasteful: a few thousand grains of ~150 kernel cells against two full-frame
     FFTs per grain size and shape (8 x 5 of them); the template calibration, which synthesises
-    26 such diffusers, became ~5x faster. A compiled loop (numba) adds each cell in place, ~9x
+    26 such diffusers then, became ~5x faster. A compiled loop (numba) adds each cell in place, ~9x
     faster again than the index arrays and ``bincount`` it falls back to without numba; the two
     differ only in the order of the float64 additions."""
     ny, nx = shape
@@ -211,7 +211,13 @@ def _splat(thickness, shape, cy, cx, ky, kx, kernel) -> None:
 def _splat_cells(thickness, ny, nx, cy, cx, ky, kx, w):
     for i in range(cy.size):
         for j in range(w.size):
-            thickness[((cy[i] + ky[j]) % ny) * nx + (cx[i] + kx[j]) % nx] += w[j]
+            # a wrap is rare (cells off the grid's edge): a test, not an integer division per cell
+            row, col = cy[i] + ky[j], cx[i] + kx[j]
+            if row < 0 or row >= ny:
+                row %= ny
+            if col < 0 or col >= nx:
+                col %= nx
+            thickness[row * nx + col] += w[j]
 
 
 @lru_cache(maxsize=1)
@@ -224,6 +230,40 @@ def _splat_loop():
     return numba.njit(_splat_cells, nogil=True, cache=True)
 
 
+def _screen_cells(thickness, rate):
+    out = np.empty(thickness.size, np.complex128)
+    flat = thickness.ravel()
+    for i in range(flat.size):
+        out[i] = np.exp(rate * flat[i])
+    return out.reshape(thickness.shape)
+
+
+def _binned_intensity_cells(field, s):
+    ny, nx = field.shape[0] // s, field.shape[1] // s
+    out = np.zeros((ny, nx))
+    for i in range(ny * s):
+        for j in range(nx * s):
+            z = field[i, j]
+            out[i // s, j // s] += z.real * z.real + z.imag * z.imag
+    return out / (s * s)
+
+
+@lru_cache(maxsize=1)
+def _template_loops():
+    """:func:`_screen_cells` and :func:`_binned_intensity_cells` compiled by numba (one pass
+    each, the GIL released so that the calibration's templates simulate side by side), or None
+    without numba. The screen is NumPy's complex exp to the bit; the binned intensity differs
+    from NumPy's ``mean`` only in the order of four float64 additions."""
+    try:
+        import numba
+    except ImportError:  # pragma: no cover - numba is a dependency; a bare checkout may lack it
+        return None
+    return (
+        numba.njit(_screen_cells, nogil=True, cache=True),
+        numba.njit(_binned_intensity_cells, nogil=True, cache=True),
+    )
+
+
 def transmission(thickness_m: np.ndarray, energy_eV: float, material: str = DEFAULT_MATERIAL) -> np.ndarray:
     """t_r = exp[-k (i delta + beta) T_r] of a thin screen of ``material`` (the exp(+ikz) convention)."""
     d, b = delta_beta(material, energy_eV)
@@ -234,7 +274,7 @@ def transmission(thickness_m: np.ndarray, energy_eV: float, material: str = DEFA
 @lru_cache(maxsize=4)
 def _free_space_kernel(shape: tuple[int, int], spacing_m: float, wavelength: float, distance_m: float) -> np.ndarray:
     """:func:`pwf_dask.physics.optics.angular_spectrum_kernel` of :func:`coherent_speckle`'s grid,
-    kept for the next call: the calibration's templates simulate 26 diffusers, nearly all on
+    kept for the next call: the calibration's templates simulate up to 22 diffusers, nearly all on
     one grid, and the kernel cost as much as the grains' splatting."""
     kernel = optics.angular_spectrum_kernel(shape, spacing_m, wavelength, distance_m, np, np.complex128)
     kernel.flags.writeable = False
@@ -274,11 +314,21 @@ def coherent_speckle(
         layers=layers,
         grain_shape=grain_shape,
     )
-    t = transmission(thickness, energy_eV, material)
+    loops = _template_loops()
+    if loops is None:
+        t = transmission(thickness, energy_eV, material)
+    else:
+        d, b = delta_beta(material, energy_eV)
+        t = loops[0](thickness, complex(-b, -d) * (2 * np.pi / optics.wavelength_m(energy_eV)))
     if distance_m == 0:
         v = t
     else:
         fft = FFT.for_module(np, fft_workers)
-        v = fft.ifft2(fft.fft2(t) * _free_space_kernel(fine, spacing, optics.wavelength_m(energy_eV), distance_m))
-    intensity = (v.real**2 + v.imag**2).reshape(ny, s, nx, s).mean(axis=(1, 3))
+        spectrum = fft.fft2(t, overwrite=True)
+        spectrum *= _free_space_kernel(fine, spacing, optics.wavelength_m(energy_eV), distance_m)
+        v = fft.ifft2(spectrum, overwrite=True)
+    if loops is None:
+        intensity = (v.real**2 + v.imag**2).reshape(ny, s, nx, s).mean(axis=(1, 3))
+    else:
+        intensity = loops[1](v, s)
     return intensity / intensity.mean()
