@@ -9,9 +9,11 @@ default needs:
    calibrated coherence, default alpha) at 256^2 (seeds 1-3) and 512^2 (seed 1), each grid
    fixed: phase gain, the largest bead's phase contrast, attenuation gain, iterations, time;
 2. cost: one iteration (``pwf-dask bench``'s loop, one FFT thread) per grid at 1024^2 and on the
-   padded full-width slab of ``pwf-dask bench fullwidth`` (32 x 2560), in FFTs of the detector grid.
+   padded full-width slab of ``pwf-dask bench fullwidth`` (32 x 2560), in FFTs of the detector grid,
+   with exp(psi) on the field grid (the default) and on the detector grid
+   (``sample_field_grid="detector"``, :func:`pwf_dask.pwf.model.build_model`), timed in one run.
 
-    python -m benchmarks.field_grid [--out benchmarks/results]
+    python -m benchmarks.field_grid [--out benchmarks/results] [--part all|cost]
 
 Writes ``field_grid.md``, ``field_grid.csv`` and ``field_grid_cost.csv`` (about 8 minutes on 2 cores).
 """
@@ -20,10 +22,11 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
-from benchmarks.reporting import device_name, write_rows_csv
+from benchmarks.reporting import device_name, read_rows_csv, write_rows_csv
 from benchmarks.speed import iteration_benchmark
 from pwf_dask.pwf import solver
 from pwf_dask.retrieval import DIFFUSER_FIELD_UPSAMPLE, retrieve_projection
@@ -47,21 +50,28 @@ def bead_contrast(image: np.ndarray, sim, sphere) -> float:
     return float(np.mean(image[r < 0.5]) - np.mean(image[(r > 1.2) & (r < 1.6)]))
 
 
-def accuracy_rows() -> list[dict]:
+#: (field grid, where exp(psi) is formed) of the accuracy rows
+VARIANTS = tuple((s, "field") for s in GRIDS) + ((DIFFUSER_FIELD_UPSAMPLE, "detector"),)
+
+
+def accuracy_rows(variants=VARIANTS) -> list[dict]:
     rows = []
     for shape, seed in SCENES:
         sim = simulate_projection(SpeckleSetup(shape=shape, photons=1e4), seed=seed)
         bead = max(sim.phantom.spheres, key=lambda s: s.radius_m)
         inside = sim.attenuation > 0.2 * sim.attenuation.max()
-        for s in GRIDS:
+        for s, where in variants:
             t0 = time.perf_counter()
-            res = retrieve_projection(sim.sample, sim.reference, **sim.geometry(), field_upsample=s)
+            res = retrieve_projection(
+                sim.sample, sim.reference, **sim.geometry(), field_upsample=s, sample_field_grid=where
+            )
             seconds = time.perf_counter() - t0
             rows.append(
                 {
                     "frame": f"{shape[0]} x {shape[1]}",
                     "seed": seed,
                     "field_grid": s,
+                    "sample_field_grid": where,
                     "phase_gain": gain(res.phase, sim.phase, sim.phase < -0.5),
                     "bead_contrast_err_pct": 100
                     * (bead_contrast(res.phase, sim, bead) / bead_contrast(sim.phase, sim, bead) - 1),
@@ -75,18 +85,61 @@ def accuracy_rows() -> list[dict]:
     return rows
 
 
+def rod_rows(rows_px: int = 96) -> list[dict]:
+    """The ``paper`` preset's rod (``benchmarks.edge_step``'s scene, ``rows_px`` x 2560, defaults,
+    calibrated coherence) with exp(psi) on the field grid and on the detector grid: sharp edges
+    (a ~16 rad step inside a pixel) are where the two differ."""
+    from dataclasses import replace
+
+    from benchmarks.edge_step import CAMERA_SHAPE, rod_offsets
+    from benchmarks.frame_size import phase_gain
+    from pwf_dask.simulation import SpeckleSimulator
+    from pwf_dask.simulation.phantoms import PAPER_BEAD_RADIUS_M, scan_phantom
+
+    setup = replace(SpeckleSetup(), shape=(rows_px, CAMERA_SHAPE[1]))
+    phantom = scan_phantom(CAMERA_SHAPE, setup.pixel_size_m, 0, bead_radius_range_m=PAPER_BEAD_RADIUS_M)
+    sim = SpeckleSimulator(setup, seed=0)
+    sample, phase, _ = sim.project(phantom)
+    reference = sim.reference()
+    out = []
+    for where in ("field", "detector"):
+        t0 = time.perf_counter()
+        r = retrieve_projection(sample, reference, **setup.geometry(), sample_field_grid=where)
+        seconds = time.perf_counter() - t0
+        recovered = np.asarray(r.phase)
+        recovered = recovered - recovered[np.abs(phase) < 1e-6].mean()
+        inside, rim = rod_offsets(recovered, phase)
+        out.append(
+            {
+                "frame": f"{rows_px} x {CAMERA_SHAPE[1]} rod",
+                "sample_field_grid": where,
+                "field_grid": r.parameters["field_upsample"],
+                "phase_gain": phase_gain(recovered, phase),
+                "rms_error_rad": float(np.sqrt(np.mean((recovered - phase) ** 2))),
+                "offset_inside_rad": inside,
+                "offset_rim_rad": rim,
+                "iterations": r.iterations,
+                "converged": bool(r.converged),
+                "seconds": seconds,
+            }
+        )
+        print(out[-1], flush=True)
+    return out
+
+
 def cost_rows() -> list[dict]:
     rows = []
     pad = 2 * 17
     for label, shape in (("1024 x 1024", (1024, 1024)), ("32 x 2560 slab", (32, 2560))):
         grid = (solver.fast_len(shape[0] + pad), solver.fast_len(shape[1] + pad))
-        for s in GRIDS:
-            r = iteration_benchmark(grid, field_upsample=s, repeat=3, fft_workers=1)
+        for s, where in [(s, "field") for s in GRIDS] + [(s, "detector") for s in GRIDS if s > 1]:
+            r = iteration_benchmark(grid, field_upsample=s, repeat=3, fft_workers=1, sample_field_grid=where)
             rows.append(
                 {
                     "frame": label,
                     "grid": f"{grid[0]} x {grid[1]}",
                     "field_grid": s,
+                    "sample_field_grid": where,
                     "field_shape": "x".join(map(str, solver.field_grid(grid, s))),
                     "iteration_ms": r["iteration_ms"],
                     "fft_ms": r["fft_ms"],
@@ -97,7 +150,7 @@ def cost_rows() -> list[dict]:
     return rows
 
 
-def write_markdown(acc: list[dict], cost: list[dict], path: str) -> None:
+def write_markdown(acc: list[dict], cost: list[dict], path: str, rod: list[dict] | None = None) -> None:
     lines = [
         "# The field grid for an aliasing diffuser",
         "",
@@ -109,21 +162,38 @@ def write_markdown(acc: list[dict], cost: list[dict], path: str) -> None:
         "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     lines += [
-        f"| {r['frame']} | {r['seed']} | {r['field_grid']:g}x | {r['phase_gain']:.3f} "
-        f"| {r['bead_contrast_err_pct']:+.1f} % | {r['attenuation_gain']:.3f} "
+        f"| {r['frame']} | {r['seed']} | {r['field_grid']:g}x"
+        + (", exp(psi) on the detector grid" if r.get("sample_field_grid") == "detector" else "")
+        + f" | {r['phase_gain']:.3f} | {r['bead_contrast_err_pct']:+.1f} % | {r['attenuation_gain']:.3f} "
         f"| {r['iterations']} | {r['seconds']:.1f} |"
         for r in acc
     ]
+    if rod:
+        lines += [
+            "",
+            "The `paper` preset's rod (`benchmarks.edge_step`'s scene, defaults, calibrated coherence; phase",
+            "offsets of the recovered against the true phase, rad, deep inside the rod and at its rim):",
+            "",
+            "| frame | exp(psi) on | field grid | phase gain | rms error (rad) | offset inside | offset at rim "
+            "| iterations | s |",
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+        lines += [
+            f"| {r['frame']} | {r['sample_field_grid']} grid | {r['field_grid']:g}x | {r['phase_gain']:.3f} "
+            f"| {r['rms_error_rad']:.2f} | {r['offset_inside_rad']:+.2f} | {r['offset_rim_rad']:+.2f} "
+            f"| {r['iterations']} | {r['seconds']:.0f} |"
+            for r in rod
+        ]
     lines += [
         "",
         "One iteration (one FFT thread), in FFTs of the padded detector grid:",
         "",
-        "| frame | padded grid | field grid | field shape | iteration (ms) | FFT-times |",
-        "|---|---|---:|---|---:|---:|",
+        "| frame | padded grid | field grid | exp(psi) on | field shape | iteration (ms) | FFT-times |",
+        "|---|---|---:|---|---|---:|---:|",
     ]
     lines += [
-        f"| {r['frame']} | {r['grid']} | {r['field_grid']:g}x | {r['field_shape']} | {r['iteration_ms']:.1f} "
-        f"| {r['fft_times']:.1f} |"
+        f"| {r['frame']} | {r['grid']} | {r['field_grid']:g}x | {r.get('sample_field_grid', 'field')} grid "
+        f"| {r['field_shape']} | {r['iteration_ms']:.1f} | {r['fft_times']:.1f} |"
         for r in cost
     ]
     lines += ["", f'`field_upsample="auto"` takes {DIFFUSER_FIELD_UPSAMPLE:g}x for an aliasing diffuser.']
@@ -134,11 +204,36 @@ def write_markdown(acc: list[dict], cost: list[dict], path: str) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="benchmarks/results")
+    ap.add_argument(
+        "--part",
+        default="all",
+        choices=["all", "cost", "detector"],
+        help="cost: re-time the iterations alone, keeping the accuracy rows of OUT/field_grid.csv; detector: "
+        "add the rows of exp(psi) on the detector grid to them and re-run the rod",
+    )
     args = ap.parse_args()
-    acc, cost = accuracy_rows(), cost_rows()
+    if args.part == "all":
+        acc = accuracy_rows()
+    else:
+        kept = read_rows_csv(args.out, "field_grid.csv")  # rows before session 49 formed exp(psi) on the field grid
+        acc = [{"sample_field_grid": "field", **r} for r in kept if r.get("sample_field_grid") != "detector"]
+        if args.part == "detector":
+            acc += accuracy_rows([v for v in VARIANTS if v[1] == "detector"])
     write_rows_csv(args.out, "field_grid.csv", acc)
+    if args.part != "cost":
+        write_rows_csv(args.out, "field_grid_rod.csv", rod_rows())
+    rod = read_rows_csv(args.out, "field_grid_rod.csv") if (Path(args.out) / "field_grid_rod.csv").exists() else None
+    cost = cost_rows() if args.part != "detector" else read_rows_csv(args.out, "field_grid_cost.csv")
     write_rows_csv(args.out, "field_grid_cost.csv", cost)
-    write_markdown(acc, cost, f"{args.out}/field_grid.md")
+    write_markdown(acc, cost, f"{args.out}/field_grid.md", rod)
+    if args.part != "all":
+        with open(f"{args.out}/field_grid.md", "a") as f:
+            f.write(
+                f"\n(`--part {args.part}`: the accuracy rows"
+                + (" of exp(psi) on the field grid" if args.part == "detector" else "")
+                + " are kept from an earlier run of this benchmark, their seconds from that run's machine;"
+                " seconds compare within one run only.)\n"
+            )
 
 
 if __name__ == "__main__":

@@ -42,6 +42,23 @@ def device_name(xp) -> str:
     return name.decode() if isinstance(name, bytes) else str(name)
 
 
+def _parse_cell(text: str):
+    if text in ("True", "False"):
+        return text == "True"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def read_rows_csv(out_dir: str | Path, name: str) -> list[dict]:
+    """The rows :func:`write_rows_csv` wrote, with numbers and booleans parsed back."""
+    with open(Path(out_dir) / name, newline="") as fh:
+        return [{k: _parse_cell(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+
+
 def write_rows_csv(out_dir: str | Path, name: str, rows: list[dict]) -> Path:
     """Rows (dicts with the same keys) as ``out_dir/name``, creating the folder."""
     out = Path(out_dir)

@@ -36,6 +36,7 @@ def iteration_benchmark(
     precision: str = "single",
     repeat: int = 3,
     fft_workers: int | None = None,
+    sample_field_grid: str = "field",
 ) -> dict:
     """One row: seconds per iteration, per FFT, and the ratio, for one grid shape.
 
@@ -47,7 +48,13 @@ def iteration_benchmark(
     rng = np.random.default_rng(1)
     p, (cx, cy) = estimate.TIMING_PIXEL_M, estimate.TIMING_COHERENCE_M
     model, y = estimate.timing_problem(
-        shape, fft, l1_m=l1_m, upsample=upsample, field_upsample=field_upsample, precision=precision
+        shape,
+        fft,
+        l1_m=l1_m,
+        upsample=upsample,
+        field_upsample=field_upsample,
+        precision=precision,
+        sample_field_grid=sample_field_grid,
     )
     # the solver's own loop (stop-rule statistics, restarts and Nesterov included), a fixed
     # number of iterations from a fixed start, so every call does the same work; a call also
@@ -104,6 +111,7 @@ def iteration_benchmark(
         "device": device_name(xp),
         "variant": f"L1{'>0' if l1_m else '=0'}, "
         + (f"field on {field_upsample:g}x grid" if field_upsample > 1 else f"upsample {upsample}")
+        + (", exp(psi) on the detector grid" if model.sample_field_grid == "detector" else "")
         + f", {precision}",
         "shape": f"{shape[0]}x{shape[1]}",
         "pixels": shape[0] * shape[1],

@@ -50,6 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.reporting import read_rows_csv
 from pwf_dask.physics import optics
 from pwf_dask.pwf.solver import PAPER_ALPHA
 from pwf_dask.retrieval import retrieve_projection
@@ -555,22 +556,8 @@ def stability_plot(path, rows: list[dict]) -> None:
 def read_stability_rows(path: str | Path) -> list[dict]:
     """The rows of a written ``stability_map.csv``, with numbers, booleans and axis values
     (numbers or labels) as :func:`stability_map` returned them."""
-    import csv
-
-    def parse(text: str):
-        if text in ("True", "False"):
-            return text == "True"
-        try:
-            return int(text)
-        except ValueError:
-            pass
-        try:
-            return float(text)
-        except ValueError:
-            return text
-
-    with open(path, newline="") as fh:
-        rows = [{k: parse(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+    path = Path(path)
+    rows = read_rows_csv(path.parent, path.name)
     for r in rows:
         r["value"] = float(r["value"]) if isinstance(r["value"], int) else r["value"]
         r["method"], r["axis"] = str(r["method"]), str(r["axis"])

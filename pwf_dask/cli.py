@@ -123,6 +123,7 @@ def retrieval_kwargs(args) -> dict:
         alpha=args.alpha,
         phase_scale=args.phase_scale,
         field_upsample=args.field_upsample,
+        sample_field_grid=args.sample_field_grid,
         coherence_method=args.coherence_method,
         diffuser_model=args.diffuser_model,
         diffuser_material=args.diffuser_material,
@@ -368,6 +369,14 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
         type=_field_upsample,
         help="sample field and propagation on a finer grid: auto (1.5x for a diffuser whose spectrum fills the "
         "detector band, 2x more for thick samples), 1 (the paper's detector grid), or a factor such as 1.5 or 2",
+    )
+    p.add_argument(
+        "--sample-field-grid",
+        default=DEFAULTS.sample_field_grid,
+        choices=["field", "detector"],
+        help="pwf on a finer field grid: where exp(psi) is formed, on that grid (default) or on the detector grid "
+        "(6 instead of 10 of its FFTs per iteration, 1.1-1.3x faster on the 1.5x grid; beads the same, a rod's "
+        "sharp edges ~1 %% shallower)",
     )
     p.add_argument(
         "--coherence-method",

@@ -23,6 +23,7 @@ from pwf_dask.physics.geometry import Geometry
 from pwf_dask.physics.materials import delta_beta
 from pwf_dask.physics.single_material import paganin_length_m, single_material_phase
 from pwf_dask.pwf import solver
+from pwf_dask.pwf.model import check_sample_field_grid
 
 logger = logging.getLogger(__name__)
 
@@ -1022,7 +1023,8 @@ def _solve(build, run, model, grid: _FieldGrid, alpha, psi0, y, scale: float, ex
         sol.backtracks,
     )
     if grid.auto and gradient > field_gradient_limit(grid.field_upsample, grid.diffuser_aliases):
-        model = build(field_upsample=2 * grid.field_upsample)
+        # past the first grid's limit the tilt itself needs the field grid: exp(U psi) there
+        model = build(field_upsample=2 * grid.field_upsample, sample_field_grid="field")
         sol = run(model, psi0=sol.psi)
         solved.model, solved.sol = model, sol
         solved.iterations += sol.iterations
@@ -1070,6 +1072,7 @@ def _checked_pwf_options(
     _check_start(opts.initial, image_shape, opts.restart)
     check_diffuser_drift(opts.diffuser_drift)
     field_upsample = check_field_upsample(opts.field_upsample)
+    check_sample_field_grid(opts.sample_field_grid)
     prior = _single_material_prior(opts.single_material, opts.sample_material, opts.sample_delta_over_beta, geometry)
     model, kappa = chosen_diffuser_model(
         opts.diffuser_model, opts.diffuser_material, opts.diffuser_beta_over_delta, geometry.energy_eV
@@ -1145,6 +1148,7 @@ def _model_builder(t, frame_shape, geometry: Geometry, coherence: _Coherence, op
         precision=opts.precision,
         normalization=opts.normalization,
         phase_scale=opts.phase_scale,
+        sample_field_grid=opts.sample_field_grid,
         bad_pixels=excluded,
         fft=fft,
     )
@@ -1258,6 +1262,7 @@ def _parameters(
         "upsample": opts.upsample,
         "field_upsample": solved.model.field_upsample,
         "field_upsample_requested": opts.field_upsample,
+        "sample_field_grid": solved.model.sample_field_grid,
         "phase_gradient_rad_per_px": solved.gradient,
         "diffuser_aliasing": grid.aliasing,
         "initial": opts.initial if isinstance(opts.initial, str) else "array",

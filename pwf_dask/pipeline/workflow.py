@@ -29,6 +29,7 @@ from pwf_dask.physics.geometry import Geometry
 from pwf_dask.physics.optics import wavelength_m
 from pwf_dask.pipeline import estimate
 from pwf_dask.pipeline.cluster import Runner, check_scheduler, worker_fft_threads
+from pwf_dask.pwf.model import check_sample_field_grid
 from pwf_dask.pwf.solver import PAPER_ALPHA
 from pwf_dask.retrieval import (
     DIFFUSER_FIELD_UPSAMPLE,
@@ -608,6 +609,7 @@ def _checked_scan_options(
     check_solver_options(max_iter, tol, gamma, step, options.get("phase_scale", DEFAULTS.phase_scale))
     if "field_upsample" in options:
         options["field_upsample"] = check_field_upsample(options["field_upsample"])
+    check_sample_field_grid(options.get("sample_field_grid", DEFAULTS.sample_field_grid))
     return angle_chain, alpha_c
 
 

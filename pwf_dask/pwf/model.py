@@ -63,6 +63,9 @@ class PWFModel:
     #: per part of psi (Re, Im): (rfft weights of its value in J, its direction filter
     #: Re/Im(alpha) Gamma^2), or None where that part of alpha is 0; precomputed by build_model
     reg_terms: tuple = (None, None)
+    #: where the sample's field exp(psi) is formed on a field grid: "field" (exp(U psi)) or
+    #: "detector" (U exp(psi), folded into P1's spectrum: :func:`build_model`)
+    sample_field_grid: str = "field"
 
 
 def _half_weights(shape, xp, dtype):
@@ -129,6 +132,7 @@ def build_model(
     normalization: str = "paper",
     phase_scale: float | str = 1.0,
     field_upsample: float = 1,
+    sample_field_grid: str = "field",
     bad_pixels=None,
     fft: FFT | None = None,
 ) -> PWFModel:
@@ -148,6 +152,16 @@ def build_model(
     paper's model, unchanged. A fractional s (e.g. 1.5) puts the field on the next fast grid
     (:func:`field_grid`), whose pixel differs slightly between the axes.
 
+    ``sample_field_grid="detector"`` forms the sample's field on the detector grid instead,
+    U exp(psi), and folds U into P1's spectrum: exp(psi) is transformed on the detector grid,
+    zero-padded, multiplied by P1's kernel and transformed back once on the field grid. Six
+    complex transforms of the field grid per iteration instead of ten (U and P1's forward
+    transform, and their adjoints, merge), at the price of the tilt argument above: exp(psi)
+    on the detector grid holds phase gradients below pi rad/pixel only, so the field grid
+    then serves t's own spectrum (the aliasing diffuser) and not steep samples.
+    Measured: docs/methods.md, "The diffuser estimate and its field grid". With s = 1 the two
+    are the same model.
+
     ``bad_pixels`` (frame-shaped, True = not a measurement, e.g. a zinger) are left out of
     the data term, as the padding margin is: the residual is masked there.
     """
@@ -164,6 +178,7 @@ def build_model(
     field_upsample = int(field_upsample) if float(field_upsample).is_integer() else float(field_upsample)
     if not field_upsample >= 1:
         raise ValueError(f"field_upsample must be >= 1, got {field_upsample}")
+    check_sample_field_grid(sample_field_grid)
     tmax = float(xp.max(t.real**2 + t.imag**2)) or 1.0
     field_shape = field_grid(shape, field_upsample)
     # the fine grid holds the coarse one's frequencies and more: its pixel is L / M per axis
@@ -212,7 +227,19 @@ def build_model(
         field_upsample=field_upsample,
         field_shape=field_shape,
         reg_terms=_regularizer_terms(reg, reg_phase, _half_weights(shape, xp, rdt), alpha),
+        sample_field_grid=sample_field_grid if field_upsample > 1 else "field",
     )
+
+
+#: where :func:`build_model` forms the sample's field exp(psi) on a field grid
+SAMPLE_FIELD_GRIDS = ("field", "detector")
+
+
+def check_sample_field_grid(sample_field_grid: str) -> str:
+    """``sample_field_grid`` if it is one of :data:`SAMPLE_FIELD_GRIDS`; else a one-line ValueError."""
+    if sample_field_grid not in SAMPLE_FIELD_GRIDS:
+        raise ValueError(f"sample_field_grid must be one of {', '.join(SAMPLE_FIELD_GRIDS)}, got {sample_field_grid!r}")
+    return sample_field_grid
 
 
 def _data_mask(shape, frame_shape, frame, bad_pixels, xp, rdt):

@@ -98,8 +98,12 @@ def physical_model(psi, model: PWFModel) -> Evaluation:
     fft = model.fft
     if model.field_upsample > 1:
         fine = model.field_shape
-        x = complex_exp(interpolate_field(psi, fine, fft), fft.workers)
-        a = x if model.kernel1 is None else _propagate(x, model.kernel1, fft, overwrite=False)
+        if model.sample_field_grid == "detector":
+            x = complex_exp(psi, fft.workers)
+            a = _interpolate_and_propagate(x, model.kernel1, fine, fft)
+        else:
+            x = complex_exp(interpolate_field(psi, fine, fft), fft.workers)
+            a = x if model.kernel1 is None else _propagate(x, model.kernel1, fft, overwrite=False)
         v = _propagate(model.t * a, model.kernel2, fft, overwrite=True)
         spec_i = _crop_spectrum(fft.rfft2(kernels.intensity(v)), model.shape, half=True)
         if model.otf is not None:
@@ -162,11 +166,32 @@ def wirtinger_derivative(ev: Evaluation, model: PWFModel):
     spec *= model.kernel2_conj
     c = fft.ifft2(spec, overwrite=True)
     c *= model.t_conj
+    if model.field_upsample > 1 and model.sample_field_grid == "detector":
+        c = _propagate_and_restrict(c, model.kernel1_conj, model.shape, fft)
+        return kernels.times_conj(c, ev.x).astype(model.cdtype, copy=False)
     if model.kernel1 is not None:
         c = _propagate(c, model.kernel1_conj, fft, overwrite=True)
     c = kernels.times_conj(c, ev.x)
     g = c if model.field_upsample == 1 else restrict_field(c, model.shape, fft)
     return g.astype(model.cdtype, copy=False)
+
+
+def _interpolate_and_propagate(x, kernel, fine_shape, fft: FFT):
+    """P1 U x: x's detector-grid spectrum zero-padded onto the field grid, times P1's kernel
+    (None: L1 = 0), one inverse transform there (``sample_field_grid="detector"``)."""
+    spec = _pad_spectrum(fft.fft2(x), fine_shape, half=False)
+    spec *= (fine_shape[0] * fine_shape[1]) / (x.shape[0] * x.shape[1])
+    if kernel is not None:
+        spec *= kernel
+    return fft.ifft2(spec, overwrite=True)
+
+
+def _propagate_and_restrict(c, kernel_conj, coarse_shape, fft: FFT):
+    """U^H P1^H c, the adjoint of :func:`_interpolate_and_propagate` (c's memory reused)."""
+    spec = fft.fft2(c, overwrite=True)
+    if kernel_conj is not None:
+        spec *= kernel_conj
+    return fft.ifft2(_crop_spectrum(spec, coarse_shape, half=False), overwrite=True)
 
 
 def _regularizer(psi, model: PWFModel):

@@ -393,6 +393,7 @@ RECON_KEYS = (
     "diffuser_model",
     "diffuser_upstream_m",  # session 19, as angle_chain
     "single_material",  # session 33, as angle_chain
+    "sample_field_grid",  # session 49, as angle_chain
     "sample_delta_over_beta",
 )
 
