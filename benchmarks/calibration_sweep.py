@@ -5,7 +5,9 @@ One 384 x 384 reference per case (seed 1), fully coherent speckle of a diffuser 
 IOTF of known lengths (3.47 / 4.31 um unless the case says otherwise), pixel-integrated, with
 Poisson noise. Cases: median grain radius 1, 3.2 (P3000) and 5 um, each at the paper's L2 = 20
 mm, at 10 and 100 mm, and at 1e3 and 1e5 photons per pixel; then P3000 at 2/2.5 and 8/8 um
-coherence lengths, 20 keV, 1 um pixels and a diffuser 10 mm upstream of the sample.
+coherence lengths, 20 keV, 1 um pixels and a diffuser 10 mm upstream of the sample; and the
+regime of the issue's real data (25 keV, 6.5 um pixels, 0.7 m, 50 mm upstream, 25 / 20 um
+coherence) with P3000, P2000, P1200 and P800 grains (0.5-1.7 px across in radius).
 
 Four diffuser families, two of them outside the templates' own (mixed round and faceted grains):
 
@@ -33,9 +35,20 @@ from scipy import ndimage
 from benchmarks.reporting import device_name, write_rows_csv
 from pwf_dask.calibration import fit_coherence_lengths
 from pwf_dask.physics import diffusers
+from pwf_dask.physics.diffusers import grit_radius_m
 from pwf_dask.simulation import SpeckleSetup, SpeckleSimulator
 
 SHAPE = (384, 384)
+REAL_DATA = dict(
+    energy_eV=25000.0,
+    pixel_size_m=6.5e-6,
+    sample_diffuser_distance_m=0.0,
+    diffuser_detector_distance_m=0.7,
+    diffuser_upstream_m=0.05,
+    coherence_length_x_m=25e-6,
+    coherence_length_y_m=20e-6,
+)
+REAL_DATA_GRITS = ("P3000", "P2000", "P1200", "P800")
 FAMILIES = ("spheres", "faceted", "rough", "blobs")
 
 
@@ -86,6 +99,10 @@ def cases() -> list[tuple[str, dict]]:
         ("P3000, 1 um pixels", {**p3000, "pixel_size_m": 1e-6}),
         ("P3000, 10 mm upstream", {**p3000, "sample_diffuser_distance_m": 0.0, "diffuser_upstream_m": 10e-3}),
     ]
+    # the regime of the issue's real data (benchmarks.frame_size's strip): 25 keV, 6.5 um pixels,
+    # the diffuser 50 mm upstream of the sample, L2 = 0.7 m, 25 / 20 um coherence: grains under 2 px
+    for grit in REAL_DATA_GRITS:
+        out.append((f"real-data regime, {grit}", {**REAL_DATA, "diffuser_radius_median_m": grit_radius_m(grit)}))
     return out
 
 

@@ -486,7 +486,7 @@ def run_per_scan_benchmark(out_dir: str | Path, quick: bool = False) -> list[dic
     ]
     lines += [
         "",
-        "The calibration's cost is its templates (simulated speckle of up to 11 grain sizes, 8 at the paper's",
+        "The calibration's cost is its templates (simulated speckle of up to 13 grain sizes, 8 at the paper's",
         "pixel, on frames of at least 256 px), nearly independent of the frame, so its share falls with the",
         "frame: per scan it is paid once",
         "per position, against one projection's retrieval for every angle (801 in the paper's scan).",

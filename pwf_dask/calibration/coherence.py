@@ -102,11 +102,18 @@ FIT_MIN_FREQUENCY = 0.06
 FIT_MIN_SIGNAL_TO_NOISE = 3.0
 #: the fewest such frequencies a fit of (log A, x^2, y^2) is made on
 FIT_MIN_POINTS = 12
-#: median grain radii of the templates: 0.5-16 um in steps of 2^(1/2), each fitted. Steps of
-#: 2^(1/4) (the best's two neighbours searched after every second radius) gained nothing on
-#: the 80 references of ``benchmarks/calibration_sweep.py`` (within 5 %: 57 of 80 either way)
-#: and cost two templates more
+#: median grain radii of the templates: 0.5-16 um in steps of 2^(1/2), each fitted; below
+#: :data:`TEMPLATE_REFINE_BELOW_PX` the best one's neighbours at 2^(+-1/4) are fitted too
 TEMPLATE_RADII_M = tuple(0.5e-6 * 2 ** (k / 2) for k in range(11))
+#: grain radius (detector pixels) below which the best template's 2^(+-1/4) neighbours are
+#: fitted too. Templates of grains under ~3 px differ in shape over the fitted band (log
+#: residual 0.13-0.76 against the 6 px template at 0.65 um pixels, against 0.05-0.09 among
+#: coarser ones), so the finer step pays there: at 6.5 um pixels (grains of 0.3-2 px; the
+#: sweep's "real-data regime") it took 5.15 um grains from +7.0 / +9.8 % to +3.8 / +5.3 %.
+#: Above, it only adds candidates on a flat chi^2: on developed speckle at 300 ph/px a 2.4 um
+#: neighbour beat the white template and read 21 % short (``tests/test_calibration.py``).
+#: docs/methods.md, "Coherence calibration"
+TEMPLATE_REFINE_BELOW_PX = 3.0
 #: largest template grain radius in detector pixels. A coarser grain's first spectral zero
 #: (0.61 / r cycles/px) lies below :data:`FIT_MIN_FREQUENCY`: over the fitted band its
 #: spectrum is the edges' tail, of one shape from ~6 px on (log-residual 0.05-0.09 at 0.65 um
@@ -374,9 +381,16 @@ def fit_coherence_lengths(
     geometry = (tile, float(pixel_size_m), float(energy_eV), float(diffuser_detector_distance_m), diffuser_material)
     fits: dict[tuple[str, float | None], tuple | None] = {}
 
+    def fit_grains(radii) -> None:
+        for radius, template in zip(radii, _template_spectra(geometry, radii)):
+            fits[("mixed grains", radius)] = _fit_iotf(spectrum, variance, noise, template)
+
     radii = template_radii_m(pixel_size_m)
-    for radius, template in zip(radii, _template_spectra(geometry, radii)):
-        fits[("mixed grains", radius)] = _fit_iotf(spectrum, variance, noise, template)
+    fit_grains(radii)
+    best = min(fits, key=lambda key: math.inf if fits[key] is None else fits[key][2])
+    if fits[best] is not None and best[1] < TEMPLATE_REFINE_BELOW_PX * pixel_size_m:
+        k = 2 * TEMPLATE_RADII_M.index(best[1])  # on the 2^(1/4) grid
+        fit_grains([r for r in (0.5e-6 * 2 ** ((k + j) / 4) for j in (-1, 1)) if radii[0] <= r <= radii[-1]])
     # delta-correlated speckle (the Siegert premise) as a detector pixel sees it
     fits[("white", None)] = _fit_iotf(spectrum, variance, noise, _pixel_transfer_squared(tile))
     best = min(fits, key=lambda key: math.inf if fits[key] is None else fits[key][2])

@@ -274,7 +274,7 @@ def transmission(thickness_m: np.ndarray, energy_eV: float, material: str = DEFA
 @lru_cache(maxsize=4)
 def _free_space_kernel(shape: tuple[int, int], spacing_m: float, wavelength: float, distance_m: float) -> np.ndarray:
     """:func:`pwf_dask.physics.optics.angular_spectrum_kernel` of :func:`coherent_speckle`'s grid,
-    kept for the next call: the calibration's templates simulate up to 22 diffusers, nearly all on
+    kept for the next call: the calibration's templates simulate up to 26 diffusers, nearly all on
     one grid, and the kernel cost as much as the grains' splatting."""
     kernel = optics.angular_spectrum_kernel(shape, spacing_m, wavelength, distance_m, np, np.complex128)
     kernel.flags.writeable = False
