@@ -32,6 +32,7 @@ from dataclasses import replace
 import numpy as np
 from scipy import ndimage
 
+from benchmarks.frame_size import STRIP_SETUP
 from benchmarks.reporting import device_name, write_rows_csv
 from pwf_dask.calibration import fit_coherence_lengths
 from pwf_dask.physics import diffusers
@@ -39,15 +40,19 @@ from pwf_dask.physics.diffusers import grit_radius_m
 from pwf_dask.simulation import SpeckleSetup, SpeckleSimulator
 
 SHAPE = (384, 384)
-REAL_DATA = dict(
-    energy_eV=25000.0,
-    pixel_size_m=6.5e-6,
-    sample_diffuser_distance_m=0.0,
-    diffuser_detector_distance_m=0.7,
-    diffuser_upstream_m=0.05,
-    coherence_length_x_m=25e-6,
-    coherence_length_y_m=20e-6,
-)
+#: the optics of :data:`benchmarks.frame_size.STRIP_SETUP`, the regime of the issue's real data
+REAL_DATA = {
+    name: getattr(STRIP_SETUP, name)
+    for name in (
+        "energy_eV",
+        "pixel_size_m",
+        "sample_diffuser_distance_m",
+        "diffuser_detector_distance_m",
+        "diffuser_upstream_m",
+        "coherence_length_x_m",
+        "coherence_length_y_m",
+    )
+}
 REAL_DATA_GRITS = ("P3000", "P2000", "P1200", "P800")
 FAMILIES = ("spheres", "faceted", "rough", "blobs")
 
