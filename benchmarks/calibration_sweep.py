@@ -37,21 +37,14 @@ from benchmarks.reporting import device_name, write_rows_csv
 from pwf_dask.calibration import fit_coherence_lengths
 from pwf_dask.physics import diffusers
 from pwf_dask.physics.diffusers import grit_radius_m
+from pwf_dask.physics.geometry import GEOMETRY_KEYS
 from pwf_dask.simulation import SpeckleSetup, SpeckleSimulator
 
 SHAPE = (384, 384)
 #: the optics of :data:`benchmarks.frame_size.STRIP_SETUP`, the regime of the issue's real data
 REAL_DATA = {
     name: getattr(STRIP_SETUP, name)
-    for name in (
-        "energy_eV",
-        "pixel_size_m",
-        "sample_diffuser_distance_m",
-        "diffuser_detector_distance_m",
-        "diffuser_upstream_m",
-        "coherence_length_x_m",
-        "coherence_length_y_m",
-    )
+    for name in (*GEOMETRY_KEYS, "diffuser_upstream_m", "coherence_length_x_m", "coherence_length_y_m")
 }
 REAL_DATA_GRITS = ("P3000", "P2000", "P1200", "P800")
 FAMILIES = ("spheres", "faceted", "rough", "blobs")
