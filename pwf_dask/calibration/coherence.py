@@ -385,15 +385,19 @@ def fit_coherence_lengths(
         for radius, template in zip(radii, _template_spectra(geometry, radii)):
             fits[("mixed grains", radius)] = _fit_iotf(spectrum, variance, noise, template)
 
+    def chi2(key) -> float:
+        found = fits[key]
+        return math.inf if found is None else found[2]
+
     radii = template_radii_m(pixel_size_m)
     fit_grains(radii)
-    best = min(fits, key=lambda key: math.inf if fits[key] is None else fits[key][2])
+    best = min(fits, key=chi2)
     if fits[best] is not None and best[1] < TEMPLATE_REFINE_BELOW_PX * pixel_size_m:
         k = 2 * TEMPLATE_RADII_M.index(best[1])  # on the 2^(1/4) grid
         fit_grains([r for r in (0.5e-6 * 2 ** ((k + j) / 4) for j in (-1, 1)) if radii[0] <= r <= radii[-1]])
     # delta-correlated speckle (the Siegert premise) as a detector pixel sees it
     fits[("white", None)] = _fit_iotf(spectrum, variance, noise, _pixel_transfer_squared(tile))
-    best = min(fits, key=lambda key: math.inf if fits[key] is None else fits[key][2])
+    best = min(fits, key=chi2)
     if fits[best] is None:
         raise ValueError(
             f"coherence-length fit failed: {_unresolved_blur_reason(spectrum, noise)}; "
