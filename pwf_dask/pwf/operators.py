@@ -179,8 +179,9 @@ def wirtinger_derivative(ev: Evaluation, model: PWFModel):
 def _interpolate_and_propagate(x, kernel, fine_shape, fft: FFT):
     """P1 U x: x's detector-grid spectrum zero-padded onto the field grid, times P1's kernel
     (None: L1 = 0), one inverse transform there (``sample_field_grid="detector"``)."""
-    spec = _pad_spectrum(fft.fft2(x), fine_shape, half=False)
-    spec *= (fine_shape[0] * fine_shape[1]) / (x.shape[0] * x.shape[1])
+    spec = fft.fft2(x)
+    spec *= (fine_shape[0] * fine_shape[1]) / (x.shape[0] * x.shape[1])  # on the smaller grid
+    spec = _pad_spectrum(spec, fine_shape, half=False)
     if kernel is not None:
         spec *= kernel
     return fft.ifft2(spec, overwrite=True)
