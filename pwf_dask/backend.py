@@ -360,7 +360,9 @@ def complex_dtype(precision: str):
 _POOL = None  # threads for element-wise passes, shared by all callers of this process
 
 
-def _pool():
+def elementwise_pool():
+    """This process's threads for element-wise passes (:func:`pwf_dask.pwf.kernels.complex_exp`),
+    started on first use, at least two."""
     global _POOL
     if _POOL is None:
         from concurrent.futures import ThreadPoolExecutor
@@ -377,59 +379,6 @@ def _forget_pool_in_child() -> None:
 
 if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_pool_in_child)
-
-
-#: elements per block of :func:`_complex_exp_into`: its three float buffers stay in L2 cache
-_EXP_BLOCK = 1 << 16
-
-
-def _complex_exp_into(z, out) -> None:
-    """out = exp(Re z) (cos Im z + i sin Im z), block by block.
-
-    NumPy's SIMD exp/cos/sin loops need contiguous operands: on the interleaved Re/Im views
-    they take the strided scalar path (exp 6x, cos 2x slower at 2048^2 here). Copying each
-    part into a small contiguous buffer first, and working through the array in blocks that
-    stay in cache, made the whole pass 3x faster (36 -> 11 ms at 2048^2, one thread), with
-    the same ufuncs on the same values: bitwise the same result.
-    """
-    fz, fo = z.reshape(-1), out.reshape(-1)
-    size = min(_EXP_BLOCK, fz.size)
-    mag, arg, trig = (np.empty(size, dtype=z.real.dtype) for _ in range(3))
-    for start in range(0, fz.size, size):
-        zb, ob = fz[start : start + size], fo[start : start + size]
-        m, a, c = mag[: zb.size], arg[: zb.size], trig[: zb.size]
-        np.copyto(m, zb.real)
-        np.exp(m, out=m)
-        np.copyto(a, zb.imag)
-        np.cos(a, out=c)
-        np.multiply(m, c, out=ob.real)
-        np.sin(a, out=c)
-        np.multiply(m, c, out=ob.imag)
-
-
-def complex_exp(z, workers: int = 1):
-    """exp(z) for complex arrays. NumPy's complex64 exp is ~10x slower than exp(Re) (cos, sin)
-    of the float32 parts (:func:`_complex_exp_into`); CuPy's fused kernel is used as is.
-
-    On the CPU, ``workers`` > 1 splits the rows over that many threads (NumPy releases the
-    GIL in ufuncs): this is the costliest element-wise pass of an iteration (about one FFT
-    time single-threaded) and the FFTs beside it already use ``workers`` threads. Each element
-    is computed by the same ufunc either way, so the result is bitwise the same.
-    """
-    xp = get_array_module(z)
-    if xp is not np:
-        return xp.exp(z)
-    z = np.ascontiguousarray(z)  # the blocks are runs of the flat array (_complex_exp_into)
-    out = np.empty(z.shape, dtype=z.dtype)
-    blocks = min(int(workers), z.shape[0]) if z.ndim >= 1 else 1
-    if blocks <= 1 or z.size < 1 << 16:
-        _complex_exp_into(z, out)
-        return out
-    edges = [z.shape[0] * i // blocks for i in range(blocks + 1)]
-    jobs = [_pool().submit(_complex_exp_into, z[a:b], out[a:b]) for a, b in zip(edges[:-1], edges[1:])]
-    for job in jobs:
-        job.result()
-    return out
 
 
 #: elements per partial sum of :func:`inner` on the CPU

@@ -398,7 +398,8 @@ def test_the_sample_field_on_the_detector_grid_holds_gentle_gradients_only(rng):
 def test_stop_statistic_is_accurate_on_full_detector_frames():
     """The field correlation of the stop rule, at 2048^2 in complex64: NumPy's BLAS vdot is off
     by 3.7e-5 there, more than the paper's tolerance itself; the blocked float64 sum is not."""
-    from pwf_dask.backend import complex_exp, inner
+    from pwf_dask.backend import inner
+    from pwf_dask.pwf.kernels import complex_exp
 
     rng = np.random.default_rng(0)
     n = 2048
@@ -412,7 +413,7 @@ def test_stop_statistic_is_accurate_on_full_detector_frames():
 
 
 def test_threaded_complex_exp_is_bitwise_the_serial_one():
-    from pwf_dask.backend import complex_exp
+    from pwf_dask.pwf.kernels import complex_exp
 
     rng = np.random.default_rng(1)
     z = (0.2 * rng.normal(size=(301, 517)) + 3j * rng.normal(size=(301, 517))).astype(np.complex64)

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from pwf_dask.backend import FFT, complex_exp, inner
+from pwf_dask.backend import FFT, inner
 from pwf_dask.physics import optics
 from pwf_dask.pwf import kernels
 from pwf_dask.pwf.model import (
@@ -99,10 +99,10 @@ def physical_model(psi, model: PWFModel) -> Evaluation:
     if model.field_upsample > 1:
         fine = model.field_shape
         if model.sample_field_grid == "detector":
-            x = complex_exp(psi, fft.workers)
+            x = kernels.complex_exp(psi, fft.workers)
             a = _interpolate_and_propagate(x, model.kernel1, fine, fft)
         else:
-            x = complex_exp(interpolate_field(psi, fine, fft), fft.workers)
+            x = kernels.complex_exp(interpolate_field(psi, fine, fft), fft.workers)
             a = x if model.kernel1 is None else _propagate(x, model.kernel1, fft, overwrite=False)
         v = _propagate(model.t * a, model.kernel2, fft, overwrite=True)
         spec_i = _crop_spectrum(fft.rfft2(kernels.intensity(v)), model.shape, half=True)
@@ -111,7 +111,7 @@ def physical_model(psi, model: PWFModel) -> Evaluation:
         f = fft.irfft2(spec_i, s=model.shape, overwrite=True)
         f *= (model.shape[0] * model.shape[1]) / (fine[0] * fine[1])
         return Evaluation(x=x, v=v, f=f.astype(model.rdtype, copy=False), r=None, loss=math.nan)
-    x = complex_exp(psi, fft.workers)
+    x = kernels.complex_exp(psi, fft.workers)
     if model.kernel1 is None:
         a = model.t * x
     else:
