@@ -172,8 +172,9 @@ def run_iteration_benchmark(out_dir: str | Path, device: str = "cpu", sizes=None
         "*As printed*: Algorithms S1/S2 transcribed line by line (`tests/algorithm_s1.py`:",
         "16 complex FFTs, 14 with L1 = 0, one array pass per printed operation, as the authors'",
         "released code), timed in the same interleaved rounds; it gives the solver's direction (test).",
-        "*FFT*: one complex64 FFT of the library in use (`PWF_DASK_FFT`: MKL on Intel CPUs, else",
-        "scipy's pocketfft); *scipy FFT*: scipy's, timed beside it (the same column without MKL).",
+        "*FFT*: one complex64 FFT of the library in use (`PWF_DASK_FFT`: MKL on Intel CPUs, and on",
+        "others for one thread; else scipy's pocketfft); *scipy FFT*: scipy's, timed beside it (the",
+        "same column without MKL).",
         "",
         "| shape | variant | threads | iteration (ms) | FFT (ms) | ratio | scipy FFT (ms) | ratio to scipy FFT "
         "| as printed (ms) | ratio | speed-up |",
