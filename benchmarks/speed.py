@@ -161,8 +161,10 @@ def run_iteration_benchmark(out_dir: str | Path, device: str = "cpu", sizes=None
             )
     tag = "gpu" if xp is not np else "cpu"
     out = write_rows_csv(out_dir, f"bench_iteration_{tag}.csv", rows)
+    # the library can depend on the thread budget (resolve_fft_library): each one named
+    libraries = ", ".join(sorted({f"{r['fft_library']} on {r['fft_workers']} thread(s)" for r in rows}))
     lines = [
-        f"# PWF iteration time / complex64 FFT time ({rows[0]['device']}, FFTs: {rows[0]['fft_library']})",
+        f"# PWF iteration time / complex64 FFT time ({rows[0]['device']}, FFTs: {libraries})",
         "",
         "Measured in one run by `pwf-dask bench iteration`; an iteration is Algorithm S1 with",
         "Algorithm S2's model, Wirtinger derivative, preconditioner and regularizer, timed as the",
@@ -172,8 +174,8 @@ def run_iteration_benchmark(out_dir: str | Path, device: str = "cpu", sizes=None
         "*As printed*: Algorithms S1/S2 transcribed line by line (`tests/algorithm_s1.py`:",
         "16 complex FFTs, 14 with L1 = 0, one array pass per printed operation, as the authors'",
         "released code), timed in the same interleaved rounds; it gives the solver's direction (test).",
-        "*FFT*: one complex64 FFT of the library in use (`PWF_DASK_FFT`: MKL on Intel CPUs, and on",
-        "others for one thread; else scipy's pocketfft); *scipy FFT*: scipy's, timed beside it (the",
+        "*FFT*: one complex64 FFT of the library in use (`PWF_DASK_FFT`: MKL on Intel CPUs, and on "
+        "others for one thread; else scipy's pocketfft); *scipy FFT*: scipy's, timed beside it (the "
         "same column without MKL).",
         "",
         "| shape | variant | threads | iteration (ms) | FFT (ms) | ratio | scipy FFT (ms) | ratio to scipy FFT "
@@ -188,7 +190,7 @@ def run_iteration_benchmark(out_dir: str | Path, device: str = "cpu", sizes=None
 
     if tag == "gpu":
         # no scipy FFT on the device: its columns give the CUDA kernels' gain instead
-        lines[-5:-3] = [
+        lines[-4:-3] = [
             "*FFT*: one complex64 FFT (cuFFT, through CuPy). *With CUDA kernels*: the same solver with",
             "the element-wise passes as the CUDA kernels of `pwf_dask.pwf.kernels` (`PWF_DASK_CUDA_KERNELS=1`;",
             "the iteration column: the default, one CuPy kernel per NumPy operation), same rounds.",
