@@ -10,7 +10,7 @@
 #   detector_defects.* ~6 min: PWF with zingers in the images, defect test on and off
 #   authors_release.*  ~10 min: pwf-dask against the authors' released choices, 4 scenes
 #   drift_baselines.*  ~1 min: UMPA and LCS with a drifting diffuser, correction off and on
-#   calibration_dose.* ~25 min: coherence calibration (template, Gaussian) and PWF against dose
+#   calibration_dose.* ~6 min: coherence calibration (template, Gaussian) and PWF against dose
 #   calibration_sweep.* ~1 min: the template fit against the Gaussian over 80 diffusers and geometries
 #   geometry_sweep.*   ~2 min: PWF on other energies, pixels, coherence lengths and distances
 #   random_scenes.*    ~30 min: PWF (calibrated, true lengths) and UMPA K=1 on 80 random geometries
