@@ -925,6 +925,7 @@ class _Coherence:
             "coherence_method": fit.method if fit else "given",
             "coherence_template": fit.template if fit else "",
             "coherence_grain_radius_m": fit.grain_radius_m if fit else None,
+            "coherence_reference_photons_per_px": fit.reference_photons_per_px if fit else None,
             "pixel_integration": self.pixel_integration,
         }
 

@@ -100,6 +100,7 @@ def test_low_dose_frequencies_are_chosen_on_the_smoothed_spectrum():
         fit = calibration.fit_coherence_lengths(ref, 0.65e-6, **PAPER)
         errors.append(0.5 * (fit.x_m / 3.47e-6 + fit.y_m / 4.31e-6) - 1.0)
         white += fit.template == "white"
+        assert fit.reference_photons_per_px == pytest.approx(100, rel=0.1)  # the dose it read
     assert abs(float(np.median(errors))) < 0.025, errors
     assert white >= 6, errors
 

@@ -100,6 +100,8 @@ def test_papers_diffuser_calibrated_coherence_and_alpha_from_the_data(seed):
     sim = simulate_projection(SpeckleSetup(shape=(256, 256)), seed=seed)
     res = retrieve_projection(sim.sample, sim.reference, **kwargs(sim))
     assert res.parameters["coherence_method"] == "template" and res.parameters["field_upsample"] == 1.5
+    # the dose the calibration read: 1e4 ph/px through the diffuser's absorption (~0.9)
+    assert 6e3 < res.parameters["coherence_reference_photons_per_px"] < 1.1e4
     assert 0.95 <= gain(res.phase, sim.phase, sim.phase < -0.5) <= 1.05
     bead = max(sim.phantom.spheres, key=lambda s: s.radius_m)
     assert bead_contrast(res.phase, sim, bead) == pytest.approx(bead_contrast(sim.phase, sim, bead), rel=0.10)

@@ -10,7 +10,7 @@ import pytest
 import xarray as xr
 import zarr
 
-from pwf_dask import cli
+from pwf_dask import calibration, cli
 from pwf_dask.physics.materials import delta_beta
 from pwf_dask.pipeline import workflow
 from pwf_dask.pwf import solver
@@ -595,6 +595,16 @@ def demo_recon(tmp_path_factory):
     # the demo's settings (300 iterations; defaults otherwise)
     workflow.run_scan(scan, recon, max_iter=300)
     return xr.open_zarr(recon)
+
+
+def test_the_store_records_each_positions_calibration_and_the_dose_it_read(demo_recon):
+    """The demo's raw counts (1e4 ph/px, flat- and dark-corrected, through the diffuser) read
+    6.6e3 photons a pixel: above the calibration's low-dose frequency choice."""
+    fits = json.loads(demo_recon.attrs["coherence_fits_per_position"])
+    assert len(fits) == demo_recon.sizes["position"]
+    for fit in fits:
+        assert fit["method"] == "template"
+        assert calibration.coherence.LOW_DOSE_PHOTONS < fit["reference_photons_per_px"] < 1e4
 
 
 def bead_values(ds, p):

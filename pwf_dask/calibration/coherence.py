@@ -354,6 +354,10 @@ class CoherenceFit:
     #: the winning template's chi^2 per frequency fitted (:func:`_fit_iotf`)
     chi2_per_point: float | None = None
     points: int = 0
+    #: the reference's dose as the fit read it: 1 / the white floor of the mean-normalised
+    #: reference (photons a pixel, flat and dark noise included); below
+    #: :data:`LOW_DOSE_PHOTONS` the frequencies were chosen on the smoothed spectrum ("template")
+    reference_photons_per_px: float | None = None
 
     @property
     def includes_pixel_blur(self) -> bool:
@@ -441,6 +445,7 @@ def fit_coherence_lengths(
         grain_radius_m=best[1],
         chi2_per_point=best_chi2 / points,
         points=points,
+        reference_photons_per_px=1.0 / noise if noise > 0 else None,  # None: no photon noise read
     )
 
 

@@ -655,7 +655,13 @@ def _coherence_record(method: str, coherence, fits, info) -> dict:
         "coherence_calibrated": info.coherence_length_x_m is None or info.coherence_length_y_m is None,
         "coherence_fits_per_position": json.dumps(
             [
-                {"method": f.method, "template": f.template, "grain_radius_m": f.grain_radius_m, "seconds": round(t, 3)}
+                {
+                    "method": f.method,
+                    "template": f.template,
+                    "grain_radius_m": f.grain_radius_m,
+                    "reference_photons_per_px": f.reference_photons_per_px,
+                    "seconds": round(t, 3),
+                }
                 for f, t in fits
             ]
         )
