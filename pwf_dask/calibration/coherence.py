@@ -305,22 +305,26 @@ def fit_selection_spectrum(spectrum: np.ndarray, noise: float) -> np.ndarray:
     return ndimage.uniform_filter(spectrum, size, mode="wrap")
 
 
-def _fit_iotf(spectrum, variance, noise: float, template, selection=None):
+def _above_noise(spectrum: np.ndarray, selection: np.ndarray, noise: float) -> np.ndarray:
+    """The bins the IOTF fit may use: ``selection`` 3x above the white floor, and the bin's own
+    value above it (log(S - N) defined; implied when ``selection`` is ``spectrum``)."""
+    return (selection > FIT_MIN_SIGNAL_TO_NOISE * noise) & (spectrum > noise)
+
+
+def _fit_iotf(spectrum, variance, noise: float, template, selection):
     """Weighted least squares of log(S - N) = log A + log T - pi (u^2 x^2 + v^2 y^2): the
     template T times Eq. (IOTF) squared, linear in (log A, x^2, y^2) with u, v in cycles per
     pixel and lengths in pixels, weighted by the data's own scatter (the templates are
     noise-free: :func:`_template_spectrum`), over the frequencies where ``selection``
-    (:func:`fit_selection_spectrum`; ``spectrum`` when None) stands 3x above the noise.
+    (:func:`fit_selection_spectrum`) stands 3x above the noise.
     Returns (x_px, y_px, chi2, points), or None without positive lengths or with too few
     frequencies above the noise."""
     ty, tx = spectrum.shape
     v = np.broadcast_to(np.fft.fftfreq(ty)[:, None], spectrum.shape)
     u = np.broadcast_to(np.fft.fftfreq(tx)[None, :], spectrum.shape)
     q = np.hypot(u, v)
-    selection = spectrum if selection is None else selection
     use = (
-        (selection > FIT_MIN_SIGNAL_TO_NOISE * noise)
-        & (spectrum > noise)  # log(S - N) defined; implied when selection is spectrum
+        _above_noise(spectrum, selection, noise)
         & (q >= FIT_MIN_FREQUENCY)
         & (q < 0.5)
         & (template > 0)
@@ -459,7 +463,7 @@ def _unresolved_blur_reason(spectrum: np.ndarray, noise: float, selection: np.nd
     v, u = np.fft.fftfreq(ty)[:, None], np.fft.fftfreq(tx)[None, :]
     q = np.hypot(u, v)
     band = (q >= FIT_MIN_FREQUENCY) & (q < 0.5) & (u >= 0) & (v >= 0)  # the frequencies _fit_iotf reads
-    above = int(np.sum(band & (selection > FIT_MIN_SIGNAL_TO_NOISE * noise) & (spectrum > noise)))
+    above = int(np.sum(band & _above_noise(spectrum, selection, noise)))
     if float(np.mean(spectrum[(q >= 0.4) & (q < 0.5)])) > 1.3 * noise:
         return (
             "the reference's speckle reaches the Nyquist frequency, so its blur is under about a pixel "
