@@ -362,15 +362,38 @@ def test_field_on_a_finer_grid_follows_gradients_beyond_pi_per_pixel(rng):
     assert np.abs(solver.physical_model(psi, model(1)).f - truth).max() > 0.1
 
 
+def test_fast_lengths_have_no_prime_factor_above_7_and_four_divides_them():
+    """``fast_len``: the smallest such length (scipy's next_fast_len took 11 and odd lengths,
+    which MKL and cuFFT transform slowly: benchmarks/results/fft_lengths.md); doubling a fast
+    length gives a fast length, so an integer field grid is exactly s times the grid."""
+
+    def smooth(m):
+        for p in (2, 3, 5, 7):
+            while m % p == 0:
+                m //= p
+        return m == 1
+
+    def valid(m):
+        return m % 4 == 0 and smooth(m)
+
+    for n in range(1, 3000):
+        m = solver.fast_len(n)
+        assert m >= n and valid(m) and not any(valid(k) for k in range(n, m)), n
+        assert solver.fast_len(2 * m) == 2 * m and solver.fast_len(3 * m) == 3 * m
+    # the padded 512^2 frame, its 1.5x field grid, the padded camera frame
+    assert [solver.fast_len(n) for n in (546, 825, 2194, 2594)] == [560, 840, 2240, 2688]
+    assert solver.field_grid((560, 2240), 2) == (1120, 4480)
+
+
 def test_a_fractional_field_grid_is_exact_within_its_band(rng):
-    """A 1.45x field grid on a 48 x 40 frame: 70 x 60 (fast lengths, so the fine pixel differs
+    """A 1.45x field grid on a 48 x 40 frame: 72 x 60 (fast lengths, so the fine pixel differs
     between the axes). A tilt of 2 rad/px along x on a diffuser band-limited to 0.1 cycle/px
     keeps the field within 0.42 cycle/px, whose |v|^2 the grid holds without wrapping into the
     detector band: the intensity is the 4x grid's (to 1e-6: the Bessel tails of the tilt), the
     detector grid's not."""
     psi, model, truth = _tilted_scene(rng, (48, 40), 2.0)
     fine = model(1.45)
-    assert fine.field_shape == (70, 60) and solver.field_grid((48, 40), 2) == (96, 80)
+    assert fine.field_shape == (72, 60) and solver.field_grid((48, 40), 2) == (96, 80)
     assert np.abs(solver.physical_model(psi, fine).f - truth).max() < 1e-6
     assert np.abs(solver.physical_model(psi, model(1)).f - truth).max() > 1e-3  # 1.8e-3: |v|^2 wraps
 
