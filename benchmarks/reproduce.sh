@@ -24,6 +24,7 @@
 #   bench_per_scan_cpu.* ~3 min: calibration, diffuser fit and model build against one retrieval
 #   field_grid.*       ~15 min: phase gain and iteration cost of the field grid 1x-2x on P3000 scenes
 #   fft_lengths.*      ~12 min: an iteration on scipy's fast FFT lengths against fast_len's, 256^2 to 2160 x 2560
+#                      (fft_lengths_sizes.*: --part sizes, ~6 min: 2-D transforms by side, the rules weighed)
 #   paper_figures.*    ~1.5 min: the paper's Fig. 2 and Fig. 3 on simulated scenes, PWF beside LCS K=12
 #   bench_fullwidth_cpu.* ~2.5 h: 801 angles x 32 x 2560 through pwf-dask run, the full scan modelled
 #   warm_stop.*        ~3 min after fullwidth (WORK_DIR=its --work-dir): the stop's jtol against the true phase
@@ -55,7 +56,7 @@ case "${1:-all}" in
   fullwidth) "$PWF" bench fullwidth --out "$OUT" ;;
   warm-stop) "$(dirname "$PWF")/python" -m benchmarks.warm_stop "${WORK_DIR:?set WORK_DIR to the fullwidth bench --work-dir}" --out "$OUT" ;;
   field-grid) "$(dirname "$PWF")/python" -m benchmarks.field_grid --out "$OUT" ;;
-  fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --out "$OUT" ;;
+  fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --part all --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
     for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-camera edge-step demo-dose random-scenes diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;

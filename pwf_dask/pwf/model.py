@@ -111,9 +111,9 @@ def fast_len(n: int) -> int:
     scipy's ``next_fast_len`` admits the factor 11 and odd lengths, which pocketfft handles
     well and MKL (and cuFFT, whose fast radices are 2, 3, 5 and 7) less so. Timed on an AMD
     EPYC (session 52, one thread, 2-D c2c and r2c of every 11-smooth side from 200 to 4100,
-    weighted as an iteration's transforms) this rule costs 0.87-0.89 of scipy's choice on MKL
-    on average and 0.94-0.97 on pocketfft. Whole iterations, one thread
-    (``benchmarks/results/fft_lengths.md``): a 512^2 frame on 560^2 instead of 550^2
+    weighed as an iteration's transforms and element-wise work; ``fft_lengths_sizes.md``) this
+    rule costs 0.89-0.90 of scipy's choice on MKL on average and 0.96-0.98 on pocketfft. Whole
+    iterations, one thread (``benchmarks/results/fft_lengths.md``): a 512^2 frame on 560^2 instead of 550^2
     (2 x 5^2 x 11) 0.69x the time with MKL, its 1.5x field grid 840^2 instead of 825^2 0.76x,
     the camera's 2160 x 2560 frame on 2240 x 2688 instead of 2200 x 2625 0.62x (0.90x on its
     field grid); pocketfft 0.70-1.04x. The set is closed under doubling, so an integer field
