@@ -126,18 +126,11 @@ def write_report(out_dir, rows: list[dict]) -> None:
         fh.write("\n".join(lines) + "\n")
 
 
-def _smooth(n: int, primes=(2, 3, 5, 7, 11)) -> bool:
-    for p in primes:
-        while n % p == 0:
-            n //= p
-    return n == 1
-
-
 def size_rows(libraries) -> list[dict]:
     """The fastest of a few 2-D complex and real transforms of each side's square, per library."""
     rng = np.random.default_rng(0)
     rows = []
-    for n in (n for n in range(*SIZE_RANGE) if _smooth(n)):
+    for n in (n for n in range(*SIZE_RANGE) if pwf_model._smooth(n, (2, 3, 5, 7, 11))):
         a = (rng.standard_normal((n, n)) + 1j * rng.standard_normal((n, n))).astype(np.complex64)
         r = np.ascontiguousarray(a.real)
         row = {"side": n}

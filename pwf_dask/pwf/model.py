@@ -125,8 +125,9 @@ def fast_len(n: int) -> int:
     return m
 
 
-def _smooth(n: int) -> bool:
-    for p in FAST_LEN_PRIMES:
+def _smooth(n: int, primes=FAST_LEN_PRIMES) -> bool:
+    """Whether ``n`` has no prime factor outside ``primes``."""
+    for p in primes:
         while n % p == 0:
             n //= p
     return n == 1
