@@ -4,8 +4,11 @@ Every measurement runs in a fresh process and reads its peak resident memory
 (``ru_maxrss``) after one task of the stage, on inputs loaded from disk (so that making
 them does not count): one PWF retrieval (paper geometry, 10 iterations, field_upsample 1 and
 2) at several frame sizes, one tomography task (``workflow._tomo_task`` on a row block), and
-one FSC of two tomograms. The prediction is :mod:`pwf_dask.pipeline.estimate`'s, plus the process's
-own import baseline measured beside it.
+one FSC of two tomograms. A retrieval's process first runs a 48 x 64 retrieval, as a worker has
+run its first task: what that loads once (numba's compiled kernels, MKL, scipy's optimizers:
+~190 MB, session 52) is the worker's baseline, not the task's. The prediction is
+:mod:`pwf_dask.pipeline.estimate`'s; the worker's baseline (``estimate.WORKER_BASE_MB``) is measured
+beside it: a process with pwf-dask, zarr and distributed imported, after that small retrieval.
 
     python -m benchmarks.memory_model [--out benchmarks/results]
 
@@ -38,17 +41,33 @@ if not os.path.exists(f):
     sys.exit(3)
 d = np.load(f)
 s, r = d["s"].astype(np.float32), d["r"].astype(np.float32)
+kw = dict(energy_eV=1e4, pixel_size_m=0.65e-6, sample_diffuser_distance_m=3e-3, diffuser_detector_distance_m=20e-3,
+    coherence_length_x_m=3.47e-6, coherence_length_y_m=4.31e-6, tol=0.0, field_upsample=up)
+retrieve_projection(s[:48, :64], r[:48, :64], max_iter=3, **kw)  # a worker's first task
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-retrieve_projection(s, r, energy_eV=1e4, pixel_size_m=0.65e-6, sample_diffuser_distance_m=3e-3,
-    diffuser_detector_distance_m=20e-3, coherence_length_x_m=3.47e-6, coherence_length_y_m=4.31e-6,
-    max_iter=10, tol=0.0, field_upsample=up)
+retrieve_projection(s, r, max_iter=10, **kw)
 print(json.dumps({"base_mb": base, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+
+BASELINE = r"""
+import json, resource, sys
+import numpy as np, zarr, distributed
+from pwf_dask.pipeline import workflow
+from pwf_dask.retrieval import retrieve_projection
+imported = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+d = np.load(sys.argv[1])
+retrieve_projection(d["s"][:48, :64].astype(np.float32), d["r"][:48, :64].astype(np.float32), energy_eV=1e4,
+    pixel_size_m=0.65e-6, sample_diffuser_distance_m=3e-3, diffuser_detector_distance_m=20e-3,
+    coherence_length_x_m=3.47e-6, coherence_length_y_m=4.31e-6, max_iter=3, tol=0.0)
+print(json.dumps({"imported_mb": imported, "base_mb": 0.0,
+    "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
 
 TOMO = r"""
 import json, resource, sys
 import numpy as np, zarr
-from pwf_dask import scan_io, workflow
+from pwf_dask.pipeline import workflow
+from pwf_dask.stores import scan_io
 from pwf_dask.stores.scan_io import ScanInfo
 nang, ny, nx, path, fbp = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5]
 info = ScanInfo(path="none", n_positions=1, angles_deg=np.linspace(0, 180, nang, endpoint=False), shape=(ny, nx),
@@ -72,7 +91,7 @@ print(json.dumps({"base_mb": base, "peak_mb": resource.getrusage(resource.RUSAGE
 FSC = r"""
 import json, resource, sys
 import numpy as np
-from pwf_dask import fsc
+from pwf_dask.tomo import fsc
 ny, nx = int(sys.argv[1]), int(sys.argv[2])
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 rng = np.random.default_rng(0)
@@ -114,15 +133,19 @@ def main(argv=None) -> None:
         for ny, nx in ((32, 256), (64, 512), (16, 1024)):
             m = _child(FSC, ny, nx)
             rows.append(_row("fsc", f"{ny} x {nx} x {nx}", m, estimate.fsc_peak_mb(ny, nx)))
+        baseline = _child(BASELINE, f"{tmp}/sim_256x256.npz")
+        rows.append(_row("worker baseline (imports, a first task)", "48x64", baseline, estimate.WORKER_BASE_MB))
     out = Path(args.out)
     write_rows_csv(out, "memory_model.csv", rows)
     lines = [
         f"# Peak memory per task: measured against the model ({device_name(np)})",
         "",
         "`python -m benchmarks.memory_model`: each task in a fresh process, its peak resident memory",
-        "(`ru_maxrss`) above the process's baseline before the task (imports and inputs), against",
-        "`pwf_dask.pipeline.estimate`'s prediction of the task's own arrays. `pwf-dask estimate SCAN` adds a",
-        f"worker's import baseline ({estimate.WORKER_BASE_MB:.0f} MB) to each.",
+        "(`ru_maxrss`) above the process's baseline before the task (imports, inputs and, for a retrieval,",
+        "a 48 x 64 retrieval run first, as a worker's first task), against `pwf_dask.pipeline.estimate`'s",
+        "prediction of the task's own arrays. `pwf-dask estimate SCAN` adds a worker's baseline",
+        f"({estimate.WORKER_BASE_MB:.0f} MB: the last row, a process with pwf-dask, zarr and distributed",
+        f"imported, {baseline['imported_mb']:.0f} MB, after a 48 x 64 retrieval) to each.",
         "",
         "| stage | size | measured (MB) | predicted (MB) | predicted / measured |",
         "|---|---|---:|---:|---:|",

@@ -26,11 +26,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: a worker process with pwf-dask, zarr and distributed imported, before any task (MB)
-WORKER_BASE_MB = 85.0
+#: a worker process with pwf-dask, zarr and distributed imported (88 MB) and what its first
+#: retrieval loads once and keeps: numba's compiled kernels, MKL, scipy's optimizers (MB;
+#: 258-285 measured after a 48 x 64 retrieval, session 52: ``benchmarks/results/memory_model.md``;
+#: until then 85, the imports alone, which left a worker ~190 MB above its estimate)
+WORKER_BASE_MB = 280.0
 #: retrieval: fixed part and bytes per padded detector-grid pixel (field_upsample 1), and per
-#: extra field-grid pixel when field_upsample > 1 (fit of peak RSS at 256^2-1024^2, 10 iterations)
-RETRIEVAL_BASE_MB = 59.0
+#: extra field-grid pixel when field_upsample > 1 (fit of peak RSS at 256^2-1024^2, 10 iterations,
+#: after a first small retrieval). No fixed part is left once the worker's runtime is loaded
+#: (measured less the per-pixel terms: -8 to +8 MB at field_upsample 1, session 52); the 59 MB
+#: fitted before held part of that runtime
+RETRIEVAL_BASE_MB = 0.0
 RETRIEVAL_BYTES_PER_PIXEL = 337.0
 RETRIEVAL_BYTES_PER_FIELD_PIXEL = 79.0
 #: tomography task (fit of peak RSS of ``workflow._tomo_task``, 256-1024 px): per sinogram
