@@ -28,10 +28,23 @@ import numpy as np
 
 from benchmarks.reporting import device_name, write_rows_csv
 
-RETRIEVAL = r"""
+#: the retrieval options of every child (the paper's optics, the lengths given, one FFT thread as
+#: a scan task), and the small retrieval a worker has run as its first task
+_OPTIONS = r"""
+kw = dict(energy_eV=1e4, pixel_size_m=0.65e-6, sample_diffuser_distance_m=3e-3, diffuser_detector_distance_m=20e-3,
+    coherence_length_x_m=3.47e-6, coherence_length_y_m=4.31e-6, tol=0.0, fft_workers=1)
+def first_task(s, r, **options):
+    retrieve_projection(s[:48, :64], r[:48, :64], max_iter=3, **kw, **options)
+"""
+
+RETRIEVAL = (
+    r"""
 import json, os, resource, sys
 import numpy as np
 from pwf_dask.retrieval import retrieve_projection
+"""
+    + _OPTIONS
+    + r"""
 ny, nx, up, cache = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
 f = f"{cache}/sim_{ny}x{nx}.npz"
 if not os.path.exists(f):
@@ -41,27 +54,29 @@ if not os.path.exists(f):
     sys.exit(3)
 d = np.load(f)
 s, r = d["s"].astype(np.float32), d["r"].astype(np.float32)
-kw = dict(energy_eV=1e4, pixel_size_m=0.65e-6, sample_diffuser_distance_m=3e-3, diffuser_detector_distance_m=20e-3,
-    coherence_length_x_m=3.47e-6, coherence_length_y_m=4.31e-6, tol=0.0, field_upsample=up)
-retrieve_projection(s[:48, :64], r[:48, :64], max_iter=3, **kw)  # a worker's first task
+first_task(s, r, field_upsample=up)
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-retrieve_projection(s, r, max_iter=10, **kw)
+retrieve_projection(s, r, max_iter=10, field_upsample=up, **kw)
 print(json.dumps({"base_mb": base, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
+)
 
-BASELINE = r"""
+BASELINE = (
+    r"""
 import json, resource, sys
 import numpy as np, zarr, distributed
 from pwf_dask.pipeline import workflow
 from pwf_dask.retrieval import retrieve_projection
+"""
+    + _OPTIONS
+    + r"""
 imported = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 d = np.load(sys.argv[1])
-retrieve_projection(d["s"][:48, :64].astype(np.float32), d["r"][:48, :64].astype(np.float32), energy_eV=1e4,
-    pixel_size_m=0.65e-6, sample_diffuser_distance_m=3e-3, diffuser_detector_distance_m=20e-3,
-    coherence_length_x_m=3.47e-6, coherence_length_y_m=4.31e-6, max_iter=3, tol=0.0)
+first_task(d["s"].astype(np.float32), d["r"].astype(np.float32))
 print(json.dumps({"imported_mb": imported, "base_mb": 0.0,
     "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
+)
 
 TOMO = r"""
 import json, resource, sys

@@ -28,8 +28,9 @@ import numpy as np
 
 #: a worker process with pwf-dask, zarr and distributed imported (88 MB) and what its first
 #: retrieval loads once and keeps: numba's compiled kernels, MKL, scipy's optimizers (MB;
-#: 258-285 measured after a 48 x 64 retrieval, session 52: ``benchmarks/results/memory_model.md``;
-#: until then 85, the imports alone, which left a worker ~190 MB above its estimate)
+#: 258-285 measured after a 48 x 64 retrieval, 278 on one FFT thread with MKL, session 52:
+#: ``benchmarks/results/memory_model.md``; until then 85, the imports alone, which left a
+#: worker ~190 MB above its estimate)
 WORKER_BASE_MB = 280.0
 #: retrieval: fixed part and bytes per padded detector-grid pixel (field_upsample 1), and per
 #: extra field-grid pixel when field_upsample > 1 (fit of peak RSS at 256^2-1024^2, 10 iterations,
