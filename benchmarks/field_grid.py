@@ -13,9 +13,13 @@ default needs:
    with exp(psi) on the field grid (the default) and on the detector grid
    (``sample_field_grid="detector"``, :func:`pwf_dask.pwf.model.build_model`), timed in one run.
 
-    python -m benchmarks.field_grid [--out benchmarks/results] [--part all|cost]
+    python -m benchmarks.field_grid [--out benchmarks/results] [--part all|cost|detector|scenes]
 
-Writes ``field_grid.md``, ``field_grid.csv`` and ``field_grid_cost.csv`` (about 8 minutes on 2 cores).
+3. exp(psi) on either grid across scenes (``--part scenes``): the geometry sweep's scenes that take
+   a field grid and the real-data regime's 160 x 700 strip, relative phase error and gain.
+
+Writes ``field_grid.md``, ``field_grid.csv``, ``field_grid_rod.csv``, ``field_grid_scenes.csv`` and
+``field_grid_cost.csv`` (about 12 minutes on 2 cores; ``--part scenes`` about 4).
 """
 
 from __future__ import annotations
@@ -127,6 +131,79 @@ def rod_rows(rows_px: int = 96) -> list[dict]:
     return out
 
 
+#: geometry_sweep's scenes whose aliasing diffuser puts the field on a finer grid ("auto"), named as there
+DETECTOR_SCENES = (
+    "the paper's (10 keV, 0.65 um, L1 3 mm, L2 20 mm)",
+    "1.3 um pixels",
+    "15 keV, 1 um pixels, L2 50 mm",
+    "L1 10 mm, L2 100 mm",
+    "diffuser 5 mm upstream (L1 = 0), distance given",
+)
+
+
+def _scenes():
+    """(name, sample, reference, geometry, true phase, true attenuation, options): the
+    geometry sweep's field-grid scenes (defaults) and the real-data regime's 160 x 700 strip."""
+    from dataclasses import replace
+
+    from benchmarks.frame_size import STRIP_SETUP, strip_rods
+    from benchmarks.geometry_sweep import RUNS, SEED, SHAPE
+    from pwf_dask.simulation import SpeckleSimulator
+
+    for name, changes, options in RUNS:
+        if name in DETECTOR_SCENES and not options:
+            setup = replace(SpeckleSetup(shape=SHAPE), **changes)
+            sim = simulate_projection(setup, seed=SEED)
+            extra = {"diffuser_upstream_m": setup.diffuser_upstream_m} if setup.diffuser_upstream_m else {}
+            yield name, sim.sample, sim.reference, sim.geometry(), sim.phase, sim.attenuation, extra
+    sim = SpeckleSimulator(STRIP_SETUP, seed=1)
+    sample, phase, attenuation = sim.project(strip_rods(STRIP_SETUP.shape[1], STRIP_SETUP.pixel_size_m))
+    crop = np.s_[135:295, :700]  # frame_size's centred 160 x 700 crop
+    # the single-material fit, as frame_size measures the strip (zero phase is "auto"'s choice at 25 keV)
+    extra = {"diffuser_model": "single-material", "diffuser_upstream_m": STRIP_SETUP.diffuser_upstream_m}
+    yield (
+        "strip 160 x 700 (25 keV, 6.5 um)",
+        sample[crop],
+        sim.reference()[crop],
+        STRIP_SETUP.geometry(),
+        phase[crop],
+        attenuation[crop],
+        extra,
+    )
+
+
+def scene_rows() -> list[dict]:
+    """exp(psi) on the field grid and on the detector grid, per scene of :func:`_scenes`:
+    relative phase error inside the sample and gain (``benchmarks.stability.errors``)."""
+    from benchmarks.stability import errors
+
+    rows = []
+    for name, sample, reference, geometry, phase, attenuation, extra in _scenes():
+        background = np.abs(phase) < 1e-3 * np.abs(phase).max()
+        for where in ("field", "detector"):
+            t0 = time.perf_counter()
+            r = retrieve_projection(
+                sample, reference, **geometry, background_mask=background, sample_field_grid=where, **extra
+            )
+            seconds = time.perf_counter() - t0
+            err = errors(r.phase, r.attenuation, phase, attenuation, background)
+            rows.append(
+                {
+                    "scene": name,
+                    "sample_field_grid": where,
+                    "field_grid": r.parameters["field_upsample"],
+                    "phase_error": err["phase_error"],
+                    "phase_gain": err["phase_gain"],
+                    "attenuation_error": err["attenuation_error"],
+                    "iterations": r.iterations,
+                    "converged": bool(r.converged),
+                    "seconds": seconds,
+                }
+            )
+            print(rows[-1], flush=True)
+    return rows
+
+
 def cost_rows() -> list[dict]:
     rows = []
     pad = 2 * 17
@@ -150,7 +227,9 @@ def cost_rows() -> list[dict]:
     return rows
 
 
-def write_markdown(acc: list[dict], cost: list[dict], path: str, rod: list[dict] | None = None) -> None:
+def write_markdown(
+    acc: list[dict], cost: list[dict], path: str, rod: list[dict] | None = None, scenes: list[dict] | None = None
+) -> None:
     lines = [
         "# The field grid for an aliasing diffuser",
         "",
@@ -184,6 +263,22 @@ def write_markdown(acc: list[dict], cost: list[dict], path: str, rod: list[dict]
             f"| {r['iterations']} | {r['seconds']:.0f} |"
             for r in rod
         ]
+    if scenes:
+        lines += [
+            "",
+            "exp(psi) on the field grid and on the detector grid across scenes (`--part scenes`: the",
+            "geometry sweep's scenes that take a field grid, 256^2, seed 1, and the real-data regime's strip;",
+            "defaults, calibrated coherence; phase error relative inside the sample, as `benchmarks.stability`):",
+            "",
+            "| scene | exp(psi) on | field grid | phase error | phase gain | attenuation error | iterations | s |",
+            "|---|---|---:|---:|---:|---:|---:|---:|",
+        ]
+        lines += [
+            f"| {r['scene']} | {r['sample_field_grid']} grid | {r['field_grid']:g}x | {r['phase_error']:.3f} "
+            f"| {r['phase_gain']:.3f} | {r['attenuation_error']:.3f} "
+            f"| {r['iterations']}{'' if r['converged'] else ' (cap)'} | {r['seconds']:.1f} |"
+            for r in scenes
+        ]
     lines += [
         "",
         "One iteration (one FFT thread), in FFTs of the padded detector grid:",
@@ -201,18 +296,27 @@ def write_markdown(acc: list[dict], cost: list[dict], path: str, rod: list[dict]
         f.write("\n".join(lines) + "\n")
 
 
+def _kept(out: str, name: str) -> list[dict] | None:
+    """The rows of an earlier run's csv, or None where there is none."""
+    return read_rows_csv(out, name) if (Path(out) / name).exists() else None
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument(
         "--part",
         default="all",
-        choices=["all", "cost", "detector"],
+        choices=["all", "cost", "detector", "scenes"],
         help="cost: re-time the iterations alone, keeping the accuracy rows of OUT/field_grid.csv; detector: "
-        "add the rows of exp(psi) on the detector grid to them and re-run the rod",
+        "add the rows of exp(psi) on the detector grid to them and re-run the rod; scenes: exp(psi) on either "
+        "grid across the geometry sweep's field-grid scenes and the strip, keeping every other row",
     )
     args = ap.parse_args()
-    if args.part == "all":
+    if args.part == "scenes":
+        write_rows_csv(args.out, "field_grid_scenes.csv", scene_rows())
+        acc = read_rows_csv(args.out, "field_grid.csv")
+    elif args.part == "all":
         acc = accuracy_rows()
     else:
         kept = read_rows_csv(args.out, "field_grid.csv")  # rows before session 49 formed exp(psi) on the field grid
@@ -220,19 +324,24 @@ def main() -> None:
         if args.part == "detector":
             acc += accuracy_rows([v for v in VARIANTS if v[1] == "detector"])
     write_rows_csv(args.out, "field_grid.csv", acc)
-    if args.part != "cost":
+    if args.part in ("all", "detector"):
         write_rows_csv(args.out, "field_grid_rod.csv", rod_rows())
-    rod = read_rows_csv(args.out, "field_grid_rod.csv") if (Path(args.out) / "field_grid_rod.csv").exists() else None
-    cost = cost_rows() if args.part != "detector" else read_rows_csv(args.out, "field_grid_cost.csv")
+    if args.part == "all":
+        write_rows_csv(args.out, "field_grid_scenes.csv", scene_rows())
+    rod, scenes = (_kept(args.out, f"field_grid_{part}.csv") for part in ("rod", "scenes"))
+    cost = cost_rows() if args.part in ("all", "cost") else read_rows_csv(args.out, "field_grid_cost.csv")
     write_rows_csv(args.out, "field_grid_cost.csv", cost)
-    write_markdown(acc, cost, f"{args.out}/field_grid.md", rod)
-    if args.part != "all":
+    write_markdown(acc, cost, f"{args.out}/field_grid.md", rod, scenes)
+    kept = {
+        "cost": "the accuracy rows",
+        "detector": "the accuracy rows of exp(psi) on the field grid",
+        "scenes": "every table but the scenes' (the detector-grid rows from an earlier `--part detector`)",
+    }
+    if args.part in kept:
         with open(f"{args.out}/field_grid.md", "a") as f:
             f.write(
-                f"\n(`--part {args.part}`: the accuracy rows"
-                + (" of exp(psi) on the field grid" if args.part == "detector" else "")
-                + " are kept from an earlier run of this benchmark, their seconds from that run's machine;"
-                " seconds compare within one run only.)\n"
+                f"\n(`--part {args.part}`: {kept[args.part]} kept from an earlier run of this benchmark, their"
+                " seconds from that run's machine; seconds compare within one run only.)\n"
             )
 
 
