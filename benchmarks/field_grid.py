@@ -144,32 +144,19 @@ DETECTOR_SCENES = (
 def _scenes():
     """(name, sample, reference, geometry, true phase, true attenuation, options): the
     geometry sweep's field-grid scenes (defaults) and the real-data regime's 160 x 700 strip."""
-    from dataclasses import replace
-
-    from benchmarks.frame_size import STRIP_SETUP, strip_rods
-    from benchmarks.geometry_sweep import RUNS, SEED, SHAPE
-    from pwf_dask.simulation import SpeckleSimulator
+    from benchmarks.frame_size import STRIP_SETUP, strip_crop, strip_projection
+    from benchmarks.geometry_sweep import RUNS, simulated
 
     for name, changes, options in RUNS:
         if name in DETECTOR_SCENES and not options:
-            setup = replace(SpeckleSetup(shape=SHAPE), **changes)
-            sim = simulate_projection(setup, seed=SEED)
-            extra = {"diffuser_upstream_m": setup.diffuser_upstream_m} if setup.diffuser_upstream_m else {}
-            yield name, sim.sample, sim.reference, sim.geometry(), sim.phase, sim.attenuation, extra
-    sim = SpeckleSimulator(STRIP_SETUP, seed=1)
-    sample, phase, attenuation = sim.project(strip_rods(STRIP_SETUP.shape[1], STRIP_SETUP.pixel_size_m))
-    crop = np.s_[135:295, :700]  # frame_size's centred 160 x 700 crop
+            sim, upstream = simulated(changes)
+            yield name, sim.sample, sim.reference, sim.geometry(), sim.phase, sim.attenuation, upstream
+    sample, reference, phase, attenuation = strip_projection(STRIP_SETUP, seed=1)
+    crop = strip_crop(STRIP_SETUP, 160, 700)
     # the single-material fit, as frame_size measures the strip (zero phase is "auto"'s choice at 25 keV)
     extra = {"diffuser_model": "single-material", "diffuser_upstream_m": STRIP_SETUP.diffuser_upstream_m}
-    yield (
-        "strip 160 x 700 (25 keV, 6.5 um)",
-        sample[crop],
-        sim.reference()[crop],
-        STRIP_SETUP.geometry(),
-        phase[crop],
-        attenuation[crop],
-        extra,
-    )
+    name = "strip 160 x 700 (25 keV, 6.5 um)"
+    yield name, sample[crop], reference[crop], STRIP_SETUP.geometry(), phase[crop], attenuation[crop], extra
 
 
 def scene_rows() -> list[dict]:
@@ -332,15 +319,15 @@ def main() -> None:
     cost = cost_rows() if args.part in ("all", "cost") else read_rows_csv(args.out, "field_grid_cost.csv")
     write_rows_csv(args.out, "field_grid_cost.csv", cost)
     write_markdown(acc, cost, f"{args.out}/field_grid.md", rod, scenes)
-    kept = {
+    kept_rows = {
         "cost": "the accuracy rows",
         "detector": "the accuracy rows of exp(psi) on the field grid",
         "scenes": "every table but the scenes' (the detector-grid rows from an earlier `--part detector`)",
     }
-    if args.part in kept:
+    if args.part in kept_rows:
         with open(f"{args.out}/field_grid.md", "a") as f:
             f.write(
-                f"\n(`--part {args.part}`: {kept[args.part]} kept from an earlier run of this benchmark, their"
+                f"\n(`--part {args.part}`: {kept_rows[args.part]} kept from an earlier run of this benchmark, their"
                 " seconds from that run's machine; seconds compare within one run only.)\n"
             )
 

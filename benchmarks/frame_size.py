@@ -125,18 +125,28 @@ def beads(sizes: list[int], seed: int = 1, wrong_prior: bool = True) -> list[dic
     return rows
 
 
+def strip_projection(setup: SpeckleSetup = STRIP_SETUP, seed: int = 1):
+    """(sample, reference, true phase, true attenuation) of the strip regime's rods."""
+    sim = SpeckleSimulator(setup, seed=seed)
+    sample, phase, attenuation = sim.project(strip_rods(setup.shape[1], setup.pixel_size_m))
+    return sample, sim.reference(), phase, attenuation
+
+
+def strip_crop(setup: SpeckleSetup, rows: int, columns: int):
+    """The strip's crop of ``rows`` centred rows and its first ``columns`` columns."""
+    y0 = (setup.shape[0] - rows) // 2
+    return np.s_[y0 : y0 + rows, :columns]
+
+
 def strip(truth_start: bool, seed: int = 1, grit: str | None = None, crops=STRIP_CROPS) -> list[dict]:
     """The strip regime's crops, each without and with the single-material prior; ``grit``
     replaces the default P3000 diffuser (the scene is then named by it)."""
     setup = STRIP_SETUP if grit is None else replace(STRIP_SETUP, diffuser_grit=grit, diffuser_radius_median_m=None)
     scene = "strip" if grit is None else f"strip, {grit}"
-    sim = SpeckleSimulator(setup, seed=seed)
-    sample, phase, attenuation = sim.project(strip_rods(setup.shape[1], setup.pixel_size_m))
-    reference = sim.reference()
+    sample, reference, phase, attenuation = strip_projection(setup, seed)
     rows = []
     for ny, nx in crops:
-        y0 = (setup.shape[0] - ny) // 2
-        crop = np.s_[y0 : y0 + ny, :nx]
+        crop = strip_crop(setup, ny, nx)
         # measured with the single-material diffuser fit, which "auto" leaves at 25 keV
         fit = {"diffuser_model": "single-material"}
         runs = [("zero", fit), ("zero", {**fit, "single_material": True, "sample_material": "PMMA"})]

@@ -56,18 +56,22 @@ RUNS: list[tuple[str, dict, dict]] = [
 ]
 
 
+def simulated(changes: dict):
+    """The sweep's scene with ``changes`` (a row of :data:`RUNS`): its simulated projection and
+    the options its geometry adds to ``retrieve_projection``'s (an upstream diffuser's distance)."""
+    setup = replace(SpeckleSetup(shape=SHAPE), **changes)
+    upstream = {"diffuser_upstream_m": setup.diffuser_upstream_m} if setup.diffuser_upstream_m else {}
+    return simulate_projection(setup, seed=SEED), upstream
+
+
 def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="benchmarks/results")
     args = ap.parse_args(argv)
-    base = SpeckleSetup(shape=SHAPE)
     rows = []
     for scene, changes, options in RUNS:
-        setup = replace(base, **changes)
-        sim = simulate_projection(setup, seed=SEED)
-        opts = dict(options)
-        if setup.diffuser_upstream_m:
-            opts["diffuser_upstream_m"] = setup.diffuser_upstream_m
+        sim, upstream = simulated(changes)
+        opts = {**options, **upstream}
         background = np.abs(sim.phase) < 1e-3 * np.abs(sim.phase).max()
         t0 = time.perf_counter()
         res = retrieve_projection(sim.sample, sim.reference, **sim.geometry(), background_mask=background, **opts)
