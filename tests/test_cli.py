@@ -131,8 +131,9 @@ def test_ctrl_c_during_run_says_what_is_saved_and_the_rerun_completes(tmp_path):
     from pwf_dask.simulation import simulate_scan
 
     scan, recon = tmp_path / "scan.zarr", tmp_path / "recon.zarr"
-    # enough projections that the run is still going when the first one is saved
-    simulate_scan(scan, preset="demo", shape=(48, 64), angles=40, photons=1e4, progress=False)
+    # enough projections that the run is still going when the first one is saved: six chains
+    # of eight angles, the first saved after a sixth of the work
+    simulate_scan(scan, preset="demo", shape=(48, 64), angles=24, photons=1e4, progress=False)
     cmd = [sys.executable, "-m", "pwf_dask.cli", "retrieve", str(scan), str(recon), "--max-iter", "100"]
     # as from a shell: Ctrl-C at its default and not blocked, whatever this process's state
     # after earlier tests (an ignored or blocked SIGINT is inherited by the child)

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from measures import kwargs, relative_phase_error
 from scipy import ndimage
 
 from pwf_dask import retrieve_projection
@@ -12,10 +13,6 @@ from pwf_dask.simulation import SpeckleSetup, simulate_projection
 @pytest.fixture(scope="module")
 def sim():
     return simulate_projection(SpeckleSetup(shape=(256, 256), photons=1e4), seed=1)
-
-
-def kwargs(sim, **extra):
-    return {**sim.geometry(), **extra}
 
 
 def with_defects(image, seed, n_spikes, n_dead, amplitude=1.0):
@@ -29,11 +26,6 @@ def with_defects(image, seed, n_spikes, n_dead, amplitude=1.0):
     truth = np.zeros(out.shape, bool)
     truth.flat[idx] = True
     return out, truth
-
-
-def relative_phase_error(res, sim) -> float:
-    inside = sim.phase < -0.5
-    return float(np.sqrt(np.mean((res.phase - sim.phase)[inside] ** 2) / np.mean(sim.phase[inside] ** 2)))
 
 
 def test_neighbour_views_equal_the_ndimage_ring_filters(rng):

@@ -1,0 +1,160 @@
+"""The demo scan (``pwf-dask demo``: 48 x 128, 61 angles, two diffuser positions, 300
+iterations) reconstructed with its settings: the calibration it records, the rotation axis,
+cylinder and small-bead delta and beta against xraydb, FSC; beside it LCS with K = 12, and the
+same scan made an interior scan (the cylinder wider than the field of view)."""
+
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+from measures import bead_errors, bead_values, lcs12
+
+from pwf_dask import calibration, cli
+from pwf_dask.physics.materials import delta_beta
+from pwf_dask.pipeline import workflow
+from pwf_dask.simulation import phantom_from_json, refractive_index_volume, simulate_scan
+
+
+@pytest.fixture(scope="module")
+def demo_recon(tmp_path_factory):
+    d = tmp_path_factory.mktemp("demo")
+    scan, recon = d / "scan.zarr", d / "recon.zarr"
+    simulate_scan(scan, preset="demo", seed=0, rotation_axis_offset_px=2.5, progress=False)
+    # the demo's settings (300 iterations; defaults otherwise)
+    workflow.run_scan(scan, recon, max_iter=300)
+    return xr.open_zarr(recon)
+
+
+def test_the_store_records_each_positions_calibration_and_the_dose_it_read(demo_recon):
+    """The demo's raw counts (1e4 ph/px, flat- and dark-corrected, through the diffuser) read
+    6.6e3 photons a pixel: above the calibration's low-dose frequency choice."""
+    fits = json.loads(demo_recon.attrs["coherence_fits_per_position"])
+    assert len(fits) == demo_recon.sizes["position"]
+    for fit in fits:
+        assert fit["method"] == "template"
+        assert calibration.coherence.LOW_DOSE_PHOTONS < fit["reference_photons_per_px"] < 1e4
+
+
+@pytest.mark.slow
+def test_rotation_axis_found(demo_recon):
+    true = demo_recon.attrs["simulation_rotation_axis_offset_m"]
+    assert abs(demo_recon.attrs["rotation_center_m"] - true) < 0.1 * demo_recon.attrs["pixel_size_m"]
+
+
+def test_cylinder_delta_within_20_percent(demo_recon):
+    """The demo's 48 rows hold seven P3000 grains: its weak wide cylinder reads -16.7 % / -7.8 %
+    at the two positions with the default alpha (-11.6 % / -2.6 % with the paper's; -10.8 % /
+    -2.2 % with the paper's and the true coherence lengths: the diffuser, not the calibration;
+    -2 % to -4 % on the finer pre-P3000 sandpaper). A low-frequency loss, open in #27."""
+    dc, _ = delta_beta("cellulose", demo_recon.attrs["energy_eV"])
+    ph = phantom_from_json(demo_recon.attrs["simulation_phantom"])
+    V, U = np.meshgrid(demo_recon.v.values, demo_recon.u.values, indexing="ij")
+    core = np.hypot(V - ph.cylinder_v_m, U - ph.cylinder_u_m) < 0.5 * ph.cylinder_radius_m
+    for p in range(2):
+        assert float(np.median(demo_recon.delta[p].values[:, core])) == pytest.approx(dc, rel=0.2)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known: the demo's beads are 12 px (2 coherence lengths) in radius on the paper's diffuser; "
+    "bead delta -11.3 % / -3.5 % (positions 0/1) with the default alpha 0.1+0.05j; +19 % / +14 % with the "
+    "paper's (on the finer diffuser of sessions 1-21; docs/validation.md, Where PWF fails)",
+)
+def test_demo_small_bead_delta_within_5_percent(demo_recon):
+    dg, _ = delta_beta("soda-lime glass", demo_recon.attrs["energy_eV"])
+    d, _ = bead_values(demo_recon, 0)
+    assert d == pytest.approx(dg, rel=0.05)
+
+
+def test_demo_small_bead_beta_within_20_percent(demo_recon):
+    """-3.0 % / +4.4 % with the default alpha (0.72 / 0.82 of xraydb with the paper's: Re(alpha)
+    damps small absorbers and the phase took their signal)."""
+    _, bg = delta_beta("soda-lime glass", demo_recon.attrs["energy_eV"])
+    _, b = bead_values(demo_recon, 0)
+    assert b == pytest.approx(bg, rel=0.2)
+
+
+def test_every_variable_and_coordinate_has_units_and_a_long_name(demo_recon):
+    """CF-style attributes (issue #28): xarray's own plots label their axes in metres."""
+    for name in [*demo_recon.data_vars, *demo_recon.coords]:
+        attrs = demo_recon[name].attrs
+        assert attrs.get("units") and attrs.get("long_name"), name
+    assert demo_recon.u.attrs["units"] == "m" and demo_recon.delta.attrs["long_name"].startswith("refractive")
+
+
+def test_fsc_resolutions_are_physical(demo_recon):
+    p = demo_recon.attrs["pixel_size_m"]
+    for name in ("fsc_delta", "fsc_beta", "fsc_delta_truth"):
+        r = demo_recon[name].attrs["resolution_m"]
+        assert 2 * p <= r < 30 * p, (name, r)
+
+
+@pytest.fixture(scope="module")
+def lcs12_recon(tmp_path_factory):
+    return lcs12(tmp_path_factory, "lcs12", preset="demo")
+
+
+@pytest.mark.slow
+def test_pwf_k1_beats_lcs_k12_on_the_small_bead_beta(demo_recon, lcs12_recon):
+    """The paper's beta finding on the demo's small bead: LCS's attenuation carries
+    phase-coupling artifacts (the paper's bead: test_beads_scan.py)."""
+    assert lcs12_recon.sizes["position"] == 1 and lcs12_recon.attrs["method"] == "lcs"
+    assert bead_errors(demo_recon, 0)[1] < bead_errors(lcs12_recon, 0)[1]
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="measured, where the paper's headline reverses: on the demo's 12-px beads LCS K=12 bead delta "
+    "is +3.9 % (finer diffuser), PWF K=1 -11.3 % with the default alpha on the paper's diffuser (docs/validation.md)",
+)
+def test_demo_small_bead_pwf_k1_beats_lcs_k12_on_bead_delta(demo_recon, lcs12_recon):
+    assert bead_errors(demo_recon, 0)[0] < bead_errors(lcs12_recon, 0)[0]
+
+
+@pytest.fixture(scope="module")
+def interior_recon(tmp_path_factory):
+    """The demo scan (one position, 31 of its 61 angles) with the cylinder 1.5x as wide as the
+    field of view: no angle has a sample-free pixel (an interior scan); the beads are those of
+    the demo scan. The measures below read the same at 61 angles (session 54: structure 0.094
+    of cellulose's delta against 0.093, level -71 % against -74 %) in twice the time."""
+    d = tmp_path_factory.mktemp("interior")
+    scan, recon = d / "scan.zarr", d / "recon.zarr"
+    assert (
+        cli.main(
+            ["simulate", str(scan), "--preset", "demo", "--positions", "1", "--axis-offset-px", "2.5"]
+            + ["--angles", "31", "--cylinder-width-fraction", "1.5"]
+        )
+        == 0
+    )
+    workflow.run_scan(scan, recon, max_iter=300)
+    ds = xr.open_zarr(recon)
+    ph = phantom_from_json(ds.attrs["simulation_phantom"])
+    truth, _ = refractive_index_volume(ph, ds.y.values, ds.v.values, ds.u.values, ds.attrs["energy_eV"])
+    V, U = np.meshgrid(ds.v.values, ds.u.values, indexing="ij")
+    seen = np.hypot(V, U) < 0.9 * ds.u.values.max()  # inside the field of view at every angle
+    return ds, truth, seen
+
+
+@pytest.mark.slow
+def test_interior_scan_keeps_the_structure_up_to_one_constant_per_slice(interior_recon):
+    """Nothing of the sample is sample-free, so no projection's phase level can be known; the
+    structure can: minus its mean offset per slice, delta errs as on the demo scan (0.11 of
+    cellulose's delta measured on both in session 17; 0.093 here in session 54)."""
+    ds, truth, seen = interior_recon
+    dc, _ = delta_beta("cellulose", ds.attrs["energy_eV"])
+    err = ds.delta[0].values[:, seen] - truth[:, seen]
+    err -= err.mean(axis=1, keepdims=True)
+    assert np.sqrt(np.mean(err**2)) < 0.2 * dc
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known, every method: an interior scan loses the level of delta (cellulose -77 %; "
+    "docs/validation.md, Where PWF fails): no projection has a sample-free pixel to zero its phase on",
+)
+def test_interior_scan_keeps_the_level_of_delta(interior_recon):
+    ds, truth, seen = interior_recon
+    dc, _ = delta_beta("cellulose", ds.attrs["energy_eV"])
+    matrix = truth[:, seen] == dc
+    assert float(np.median(ds.delta[0].values[:, seen][matrix])) == pytest.approx(dc, rel=0.1)
