@@ -27,6 +27,25 @@ def rng():
     return np.random.default_rng(1234)
 
 
+@pytest.fixture(scope="session")
+def small_scene():
+    """The paper's geometry and diffuser (P3000) at 256^2, 1e4 photons a pixel, seed 1: the
+    retrieval and detector tests' common scene, simulated once per test process."""
+    from pwf_dask.simulation import SpeckleSetup, simulate_projection
+
+    return simulate_projection(SpeckleSetup(shape=(256, 256), photons=1e4), seed=1)
+
+
+@pytest.fixture(scope="session")
+def small_scene_result(small_scene):
+    """``small_scene`` retrieved with every default, for the tests that hold it beside another
+    retrieval (one default retrieval at 256^2 is ~10 s of the suite's time)."""
+    from pwf_dask import retrieve_projection
+
+    sim = small_scene
+    return retrieve_projection(sim.sample, sim.reference, **sim.geometry())
+
+
 @pytest.fixture(params=["device", "emulated"])
 def cupy(request):
     """CuPy on a CUDA device (skipped without one), and the CPU emulator of

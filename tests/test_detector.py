@@ -7,12 +7,12 @@ from scipy import ndimage
 
 from pwf_dask import retrieve_projection
 from pwf_dask.physics.detector import _neighbours, find_outliers, noise_sigma, repair_outliers
-from pwf_dask.simulation import SpeckleSetup, simulate_projection
 
 
 @pytest.fixture(scope="module")
-def sim():
-    return simulate_projection(SpeckleSetup(shape=(256, 256), photons=1e4), seed=1)
+def sim(small_scene):
+    """conftest's 256^2 P3000 scene."""
+    return small_scene
 
 
 def with_defects(image, seed, n_spikes, n_dead, amplitude=1.0):
@@ -71,10 +71,10 @@ def test_stacks_are_repaired_frame_by_frame(sim):
 
 
 @pytest.mark.slow
-def test_pwf_with_zingers_matches_the_clean_result(sim):
+def test_pwf_with_zingers_matches_the_clean_result(sim, small_scene_result):
     """65 zingers of 10x the mean in each image (1e-3 of the pixels): 0.99 relative phase error
     with every pixel fitted, the clean image's error when they are left out (docs/validation.md)."""
-    clean = relative_phase_error(retrieve_projection(sim.sample, sim.reference, **kwargs(sim)), sim)
+    clean = relative_phase_error(small_scene_result, sim)
     sample, truth_s = with_defects(sim.sample, 3, 65, 0, amplitude=10.0)
     reference, truth_r = with_defects(sim.reference, 4, 65, 0, amplitude=10.0)
     res = retrieve_projection(sample, reference, **kwargs(sim))

@@ -89,7 +89,7 @@ def test_papers_diffuser_calibrated_coherence_and_alpha_from_the_data(seed, requ
     1.001 / 0.993, bead phase contrast -2.2 / +0.5 / -0.3 %, attenuation gain 0.995 / 0.990 /
     0.989 (the 2x grid the same to 0.001; the detector grid 0.88-0.91; the paper's alpha:
     gain 1.02-1.03, bead +34 to +53 %, attenuation 0.86-0.92)."""
-    if seed == 1:  # the module's small scene (the same setup and seed), retrieved once for several tests
+    if seed == 1:  # conftest's small scene (the same setup and seed), retrieved once for several tests
         sim, res = request.getfixturevalue("small_scene"), request.getfixturevalue("small_scene_result")
     else:
         sim = simulate_projection(SpeckleSetup(shape=(256, 256)), seed=seed)
@@ -124,19 +124,6 @@ def test_background_is_zero(scene):
     sim, res = scene
     bg = sim.phase > -0.01
     assert abs(float(np.mean(res.phase[bg]))) < 0.05 * abs(sim.phase.min())
-
-
-@pytest.fixture(scope="module")
-def small_scene():
-    return simulate_projection(SpeckleSetup(shape=(256, 256), photons=1e4), seed=1)
-
-
-@pytest.fixture(scope="module")
-def small_scene_result(small_scene):
-    """``small_scene`` retrieved with every default, for the tests that hold it beside another
-    retrieval (one default retrieval at 256^2 is ~10 s of the suite's time)."""
-    sim = small_scene
-    return retrieve_projection(sim.sample, sim.reference, **kwargs(sim))
 
 
 def test_ablation_without_preconditioner_leaves_phase_near_zero(small_scene):
