@@ -67,7 +67,7 @@ def test_beads_of_three_coherence_lengths_delta_within_10_percent(tmp_path):
     coherence lengths) in radius; one position, 31 angles, every default (alpha 0.1+0.05j,
     calibrated coherence). Measured bead delta +5.3 % (seed 0; +3.3 % with seed 1; at 61 angles
     +6.1 % / +2.5 %, at 41 +5.6 % / +3.8 %; +6.7 % / -3.1 % at the preset's 121 angles and two
-    positions), where the demo's 2 coherence lengths read -11 % (the xfail above)."""
+    positions), where the demo's 2 coherence lengths read -11 % (the strict xfail in test_demo_scan.py)."""
     scan, recon = tmp_path / "small.zarr", tmp_path / "r.zarr"
     simulate_scan(scan, preset="small", angles=31, positions=1, seed=0, progress=False)
     workflow.retrieve_scan(scan, recon)
