@@ -14,6 +14,13 @@ import time
 import warnings
 from pathlib import Path
 
+#: ``pwf-dask demo``'s PWF iterations per projection at most: its 48 x 128 projections' measures
+#: settle by 150, before the stop rule's median 340 (docs/validation.md, Scan-level findings, 10;
+#: 61 angles, positions 0 / 1: cylinder delta -14.9 / -9.2 % against -16.0 / -7.8 % at 300, bead
+#: delta -10.2 / -4.3 % against -10.7 / -3.6 %, FSC against the truth 4.5 px either way), in 0.65x
+#: the time
+DEMO_MAX_ITER = 150
+
 
 def _scan_demo(args) -> int:
     from pwf_dask.pipeline.workflow import run_scan
@@ -676,7 +683,7 @@ def _export_command(command) -> None:
 def _demo_command(command) -> None:
     d = command("demo", "simulate a small scan, reconstruct it, write figures")
     d.add_argument("dir", nargs="?", default="pwf-dask-demo", help="output folder (default ./pwf-dask-demo)")
-    d.add_argument("--max-iter", type=int, default=300, help="PWF iterations per projection at most")
+    d.add_argument("--max-iter", type=int, default=DEMO_MAX_ITER, help="PWF iterations per projection at most")
     d.add_argument("--phase-scale", type=float, default=1.0, help="metric scale kappa of the phase block")
     d.add_argument("--seed", type=int, default=0, help="random seed of the simulated scan")
     _compute_options(d)

@@ -22,7 +22,7 @@ PRESETS: dict[str, dict] = {
     # across fills the 160 rows) at its 0.65 um pixel, so a bead's radius is ~12 coherence
     # lengths as in the paper; a few minutes on a laptop
     "beads": dict(shape=(160, 320), angles=121, positions=2, photons=1e4, bead_radius_m=PAPER_BEAD_RADIUS_M),
-    # seconds on a laptop: what `pwf-dask demo` reconstructs. The phantom is the paper's
+    # about two minutes on 2 cores: what `pwf-dask demo` reconstructs. The phantom is the paper's
     # shrunk to 128 px: its beads are 12 px (2 coherence lengths) in radius, smaller than
     # the paper's, and PWF with the paper's alpha overshoots them (docs/validation.md, Where PWF fails)
     "demo": dict(shape=(48, 128), angles=61, positions=2, photons=1e4),
