@@ -17,7 +17,6 @@ import xarray as xr
 from measures import bead_errors, bead_values, lcs12
 
 from pwf_dask import calibration, cli
-from pwf_dask.cli import DEMO_MAX_ITER
 from pwf_dask.physics.materials import delta_beta
 from pwf_dask.pipeline import workflow
 from pwf_dask.simulation import phantom_from_json, refractive_index_volume, simulate_scan
@@ -32,7 +31,7 @@ def demo_recon(tmp_path_factory):
     scan, recon = d / "scan.zarr", d / "recon.zarr"
     simulate_scan(scan, preset="demo", angles=DEMO_TEST_ANGLES, seed=0, rotation_axis_offset_px=2.5, progress=False)
     # the demo's settings (its iteration cap; defaults otherwise)
-    workflow.run_scan(scan, recon, max_iter=DEMO_MAX_ITER)
+    workflow.run_scan(scan, recon, max_iter=cli.DEMO_MAX_ITER)
     return xr.open_zarr(recon)
 
 
@@ -140,7 +139,7 @@ def interior_recon(tmp_path_factory):
         )
         == 0
     )
-    workflow.run_scan(scan, recon, max_iter=DEMO_MAX_ITER)
+    workflow.run_scan(scan, recon, max_iter=cli.DEMO_MAX_ITER)
     ds = xr.open_zarr(recon)
     ph = phantom_from_json(ds.attrs["simulation_phantom"])
     truth, _ = refractive_index_volume(ph, ds.y.values, ds.v.values, ds.u.values, ds.attrs["energy_eV"])
