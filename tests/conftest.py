@@ -13,6 +13,29 @@ if _XDIST_PROCESSES > 1:
     os.environ.setdefault("PWF_DASK_FFT_WORKERS", str(max(1, default_fft_workers() // _XDIST_PROCESSES)))
 
 
+def pytest_configure(config):
+    """Keep the module order :func:`pytest_collection_modifyitems` sets: xdist's loadscope
+    would reorder the modules by their number of tests, which says little of their time."""
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """Modules with the most slow tests first, then by their number of tests; each module's
+    own order kept. Loadscope hands a worker the next module as it runs dry, so the long
+    modules should start first, and the short ones fill in at the end (longest first): on
+    session 55's test times the two workers' shares were 777 / 721 s in xdist's order by
+    number of tests, 749 / 749 s in this one."""
+    modules: dict[str, list] = {}
+    for item in items:
+        modules.setdefault(item.nodeid.split("::")[0], []).append(item)
+
+    def weight(tests: list) -> tuple[int, int]:
+        return (-sum(t.get_closest_marker("slow") is not None for t in tests), -len(tests))
+
+    items[:] = [t for tests in sorted(modules.values(), key=weight) for t in tests]
+
+
 @pytest.fixture(autouse=True)
 def pwf_dask_messages():
     """The library's stage messages and progress on stderr, as the CLI shows them (tests read
