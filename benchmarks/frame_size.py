@@ -13,7 +13,11 @@ Two scenes, PWF with its defaults (calibrated coherence, automatic field grid an
    rows by 700 and 2220 columns, each retrieved as it is and with the single-material prior
    (``single_material=True``, PMMA: the phase's low frequencies from the attenuation).
    ``--truth-start`` adds a run started from the true psi. ``--scenes grits`` retrieves the
-   160 x 2220 crop on P1200 and P2000 sandpaper instead (``frame_size_grits.md``).
+   160 x 2220 crop on P1200 and P2000 sandpaper instead (``frame_size_grits.md``). These runs
+   name the single-material diffuser fit; ``--scenes defaults`` retrieves the four crops with
+   every default, the upstream distance not given as in the issue's real-data call and then
+   given (``"auto"`` takes zero phase at 25 keV), and the whole frame of a second draw
+   (``frame_size_defaults.md``, about 11 minutes).
 3. ``camera`` (``frame_size_camera.md``): the ``paper`` preset's first projection on the whole
    2160 x 2560 camera frame (the paper's geometry and diffuser, its cellulose rod 0.96 mm
    across with glass beads 50-106 um across), retrieved whole and as centred crops of 540 and
@@ -160,6 +164,24 @@ def strip(truth_start: bool, seed: int = 1, grit: str | None = None, crops=STRIP
     return rows
 
 
+def strip_defaults(seeds: tuple[int, ...] = (1, 2), crops=STRIP_CROPS) -> list[dict]:
+    """The strip's crops (``seeds[0]``) and its whole frame (the other seeds) retrieved with
+    every default: L1 = 0, L2 = 0.7 m and nothing else (the issue's real-data call), then with
+    the diffuser's upstream distance given."""
+    rows = []
+    for i, seed in enumerate(seeds):
+        sample, reference, phase, _ = strip_projection(STRIP_SETUP, seed)
+        for ny, nx in crops if i == 0 else crops[-1:]:
+            crop = strip_crop(STRIP_SETUP, ny, nx)
+            for upstream_m in (0.0, STRIP_SETUP.diffuser_upstream_m):
+                r, s = _retrieve(sample[crop], reference[crop], replace(STRIP_SETUP, diffuser_upstream_m=upstream_m))
+                given = f"{upstream_m * 1e3:g} mm upstream given" if upstream_m else "distance not given"
+                scene = f"strip, seed {seed}, every default ({r.parameters['diffuser_model']}), {given}"
+                rows.append(_row(scene, f"{ny} x {nx}", r, s, phase[crop]))
+                print(rows[-1], flush=True)
+    return rows
+
+
 #: ``camera``: centred row crops of the 2160 x 2560 frame, each holding the rod's full width and background
 CAMERA_CROPS = [(540, 2560), (1080, 2560), (2160, 2560)]
 
@@ -187,7 +209,11 @@ def write_markdown(rows: list[dict], path: str, command: str = "python -m benchm
         "| scene | frame | start | prior | phase gain | phase rms error (rad) | iterations | stop | residual % "
         "| field grid | coherence x (µm) | s |"
     )
-    title = {"grits": " and diffuser grit", "camera": " up to the camera's 2160 x 2560"}
+    title = {
+        "grits": " and diffuser grit",
+        "camera": " up to the camera's 2160 x 2560",
+        "defaults": ": the strip with every default",
+    }
     lines = [
         "# Phase gain against frame size" + next((t for k, t in title.items() if k in command), ""),
         "",
@@ -224,8 +250,10 @@ def main() -> None:
         "--scenes",
         nargs="+",
         default=["beads", "strip"],
-        choices=["beads", "strip", "grits", "camera"],
+        choices=["beads", "strip", "grits", "camera", "defaults"],
         help="grits: the 160 x 2220 strip on P1200 and P2000 sandpaper, to frame_size_grits.md; "
+        "defaults: the strip's crops with every default, the upstream distance not given and given, to "
+        "frame_size_defaults.md; "
         "camera: the paper preset on the whole 2160 x 2560 frame and two row crops, to frame_size_camera.md",
     )
     ap.add_argument("--sizes", nargs="+", type=int, default=[256, 512, 1024], help="bead scene frame sizes (px)")
@@ -244,6 +272,12 @@ def main() -> None:
         grit_rows = [row for grit in GRITS for row in strip(False, grit=grit, crops=[(160, 2220)])]
         write_rows_csv(a.out, "frame_size_grits.csv", grit_rows)
         write_markdown(grit_rows, f"{a.out}/frame_size_grits.md", "python -m benchmarks.frame_size --scenes grits")
+    if "defaults" in a.scenes:
+        default_rows = strip_defaults()
+        write_rows_csv(a.out, "frame_size_defaults.csv", default_rows)
+        write_markdown(
+            default_rows, f"{a.out}/frame_size_defaults.md", "python -m benchmarks.frame_size --scenes defaults"
+        )
     if "camera" in a.scenes:
         camera_rows = camera()
         write_rows_csv(a.out, "frame_size_camera.csv", camera_rows)

@@ -18,6 +18,7 @@
 #                      (diffuser_models_calibrated.*: --calibrated --scenes 40, ~14 min)
 #   frame_size.*       ~12 min: phase gain at 256^2-1024^2 and on wide 25 keV strips of PMMA rods
 #   frame_size_grits.* ~2 min: the 160 x 2220 strip on P1200 and P2000 sandpaper
+#   frame_size_defaults.* ~11 min: the strip's crops with every default (zero phase at 25 keV)
 #   frame_size_camera.* ~11 min: the paper preset on the camera's whole 2160 x 2560 frame and row crops
 #   edge_step.*        ~14 min: where the camera frame's 5 % of phase goes (start, alpha, prior)
 #   bench_fbp_cpu.*    ~5 min: gridding FBP against the backprojector, 2560 px x 801 angles
@@ -46,6 +47,7 @@ case "${1:-all}" in
   geometry) "$(dirname "$PWF")/python" -m benchmarks.geometry_sweep --out "$OUT" ;;
   frame-size) "$(dirname "$PWF")/python" -m benchmarks.frame_size --truth-start --out "$OUT" ;;
   frame-grits) "$(dirname "$PWF")/python" -m benchmarks.frame_size --scenes grits --out "$OUT" ;;
+  frame-defaults) "$(dirname "$PWF")/python" -m benchmarks.frame_size --scenes defaults --out "$OUT" ;;
   frame-camera) "$(dirname "$PWF")/python" -m benchmarks.frame_size --scenes camera --out "$OUT" ;;
   edge-step) "$(dirname "$PWF")/python" -m benchmarks.edge_step --out "$OUT" ;;
   demo-dose) "$(dirname "$PWF")/python" -m benchmarks.demo_dose --out "$OUT" ;;
@@ -59,6 +61,6 @@ case "${1:-all}" in
   fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --part all --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-camera edge-step demo-dose random-scenes diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-camera|edge-step|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-camera edge-step demo-dose random-scenes diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-camera|edge-step|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
 esac

@@ -25,8 +25,8 @@ def test_thick_scene_without_wrapping():
     rod = Phantom(cylinder_radius_m=210e-6, cylinder_material="soda-lime glass")
     sim = simulate_projection(setup, phantom=rod, seed=2)
     assert sim.phase.min() < -30 * np.pi
-    # 300 iterations: the phase has not moved after 2000 either (gain 0.04 on the 3x field grid)
-    res = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=300))
+    # 150 iterations: the phase has not moved after 2000 either (gain 0.04 on the 3x field grid)
+    res = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=150))
     g = gain(res.phase, sim.phase, sim.phase < -1.0)
     assert 0.85 <= g <= 1.15, g
 
@@ -120,46 +120,42 @@ def rod_strip():
 
 
 @pytest.mark.slow
-def test_thick_rod_at_25_kev_with_the_diffuser_upstream(rod_strip):
+def test_single_material_prior_takes_the_rods_low_frequencies_from_the_attenuation(rod_strip):
     """The issue's real-data regime (25 keV, 6.5 µm pixels, the diffuser 50 mm upstream and
     L1 = 0, L2 = 0.7 m, 6.7 % visibility): a 3.3 mm PMMA rod, core phase about -177 rad, on a
-    160 x 700 crop, calibrated coherence. Measured gain 1.028, converged (the real crop: 1.05).
-    Wider frames with more sharp thick edges fall to 0.90-0.92 without the single-material
-    prior (docs/methods.md, Wide frames; the next test). The single-material diffuser named:
-    at 25 keV ``"auto"`` takes zero phase (gain 0.915, rms error 13.1 rad against 25.4 here)."""
-    from benchmarks.frame_size import STRIP_SETUP, _retrieve, phase_gain, strip_crop
+    160 x 700 crop, calibrated coherence, the single-material diffuser named (as measured).
+    PWF alone reads gain 1.028 there (the real crop: 1.05), a tilt: rms error 25.4 rad. Told
+    the sample is PMMA, its low frequencies follow the attenuation (Paganin's filter, ell ~ 20
+    px): gain 0.984, rms error 5.0 rad (430 x 2220 0.913 / 11.1 -> 0.978 / 4.1, 430 x 700 0.922
+    -> 0.974: benchmarks/results/frame_size.md)."""
+    from benchmarks.frame_size import STRIP_SETUP, _retrieve, phase_gain, phase_rms_error, strip_crop
 
     sample, reference, phase = rod_strip
     crop = strip_crop(STRIP_SETUP, 160, 700)
-    assert phase[crop].min() < -150
-    r, _ = _retrieve(sample[crop], reference[crop], STRIP_SETUP, diffuser_model="single-material")
-    assert r.converged
-    assert 0.95 <= phase_gain(np.asarray(r.phase), phase[crop]) <= 1.05
-
-
-@pytest.mark.slow
-def test_single_material_prior_holds_the_wide_strip_of_thick_rods(rod_strip):
-    """Issue #27's whole 430 x 2220 frame of four PMMA rods (the regime above): PWF alone
-    loses part of each sharp edge's step (gain 0.913, rms error 11 rad); told the sample is
-    PMMA, its low frequencies follow the attenuation (Paganin's filter, ell ~ 20 px). Measured
-    gain 0.978, rms error 4.1 rad (the single-material diffuser named, as measured)."""
-    from benchmarks.frame_size import STRIP_SETUP, phase_gain
-
-    sample, reference, phase = rod_strip
-    r = retrieve_projection(
-        sample,
-        reference,
-        **STRIP_SETUP.geometry(),
-        diffuser_upstream_m=STRIP_SETUP.diffuser_upstream_m,
-        single_material=True,
-        sample_material="PMMA",
-        diffuser_model="single-material",
-    )
+    options = {"single_material": True, "sample_material": "PMMA", "diffuser_model": "single-material"}
+    r, _ = _retrieve(sample[crop], reference[crop], STRIP_SETUP, **options)
     p = r.parameters
     assert p["single_material"] and 5900 < p["sample_delta_over_beta"] < 6100
     assert 19 < p["paganin_length_m"] / STRIP_SETUP.pixel_size_m < 21
     assert r.converged
+    assert 0.95 <= phase_gain(np.asarray(r.phase), phase[crop]) <= 1.05
+    assert phase_rms_error(np.asarray(r.phase), phase[crop]) < 7.0
+
+
+@pytest.mark.slow
+def test_every_default_holds_the_issues_whole_frame_of_thick_rods(rod_strip):
+    """Issue #27's whole 430 x 2220 frame of four PMMA rods as its real-data call makes it:
+    ``retrieve_projection`` with L1 = 0, L2 = 0.7 m and nothing else, the diffuser's 50 mm
+    upstream distance not given. At 25 keV ``"auto"`` takes the zero-phase estimate (the probe
+    leaves it: single material 1.47 % against 1.27 % after 40 iterations) and reads gain 0.957,
+    rms error 7.5 rad, 320 iterations (the distance given: the same; seed 2 0.980); the
+    single-material diffuser fit reads 0.913 and 11.1 rad here (session 57, docs/methods.md,
+    "Every default on these strips")."""
+    from benchmarks.frame_size import STRIP_SETUP, phase_gain, phase_rms_error
+
+    sample, reference, phase = rod_strip
+    r = retrieve_projection(sample, reference, **STRIP_SETUP.geometry())
+    assert r.parameters["diffuser_model"] == "zero-phase"
+    assert r.converged
     assert 0.95 <= phase_gain(np.asarray(r.phase), phase) <= 1.05
-    background = np.abs(phase) < 1e-6
-    error = np.asarray(r.phase) - np.asarray(r.phase)[background].mean() - phase
-    assert float(np.sqrt(np.mean(error**2))) < 6.0
+    assert phase_rms_error(np.asarray(r.phase), phase) < 9.0
