@@ -111,3 +111,24 @@ def test_random_scenes_draw_every_parameter_inside_its_stated_range():
     upstream = [s for s in setups if s.diffuser_upstream_m > 0]
     assert 60 < len(upstream) < 140 and all(s.sample_diffuser_distance_m == 0 for s in upstream)
     assert {s.diffuser_grain_shape for s in setups} == {"spheres", "faceted", "mixed"}
+
+
+def test_coarse_start_bins_and_interpolates_on_the_detectors_pixel_centres():
+    """The coarse-to-fine start (benchmarks/coarse_start.py) is only a fair trial if its binned
+    frame and the interpolation back keep the pixel centres: a plane binned 2 x 2 and
+    interpolated back is the same plane (away from the last row and column, held at the edge),
+    and an odd frame is trimmed to whole blocks and padded back to its shape."""
+    import numpy as np
+
+    from benchmarks.coarse_start import binned, upsampled
+
+    y, x = np.mgrid[0:64, 0:96].astype(float)
+    plane = 0.3 * y - 0.7 * x + 2.0
+    b = binned(plane)
+    assert b.shape == (32, 48)
+    assert b[3, 5] == plane[6:8, 10:12].mean()
+    back = upsampled(b, 2, plane.shape)
+    assert np.allclose(back[1:-1, 1:-1], plane[1:-1, 1:-1], atol=1e-12)
+    odd_plane = plane[:63, :95]
+    odd = upsampled(binned(odd_plane), 2, odd_plane.shape)
+    assert odd.shape == (63, 95) and np.allclose(odd[1:-2, 1:-2], odd_plane[1:-2, 1:-2], atol=1e-12)
