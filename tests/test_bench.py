@@ -116,8 +116,8 @@ def test_random_scenes_draw_every_parameter_inside_its_stated_range():
 def test_coarse_start_bins_and_interpolates_on_the_detectors_pixel_centres():
     """The coarse-to-fine start (benchmarks/coarse_start.py) is only a fair trial if its binned
     frame and the interpolation back keep the pixel centres: a plane binned 2 x 2 and
-    interpolated back is the same plane (away from the last row and column, held at the edge),
-    and an odd frame is trimmed to whole blocks and padded back to its shape."""
+    interpolated back is the same plane (but for the outermost rows and columns, held at the
+    edge), and an odd frame is trimmed to whole blocks and padded back to its shape."""
     import numpy as np
 
     from benchmarks.coarse_start import binned, upsampled
