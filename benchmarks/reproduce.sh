@@ -19,6 +19,7 @@
 #   frame_size.*       ~12 min: phase gain at 256^2-1024^2 and on wide 25 keV strips of PMMA rods
 #   frame_size_grits.* ~2 min: the 160 x 2220 strip on P1200 and P2000 sandpaper
 #   frame_size_defaults.* ~11 min: the strip's crops with every default (zero phase at 25 keV)
+#   frame_size_bead_grains.* ~20 min: the bead scene at 256^2-1024^2 on more P3000 draws, 1.2 and 4.5 um grains
 #   frame_size_camera.* ~11 min: the paper preset on the camera's whole 2160 x 2560 frame and row crops
 #   edge_step.*        ~14 min: where the camera frame's 5 % of phase goes (start, alpha, prior)
 #   coherence_sensitivity.* ~12 min: phase gain against coherence-length error (0.7-1.3x), every other default
@@ -50,6 +51,7 @@ case "${1:-all}" in
   frame-size) "$(dirname "$PWF")/python" -m benchmarks.frame_size --truth-start --out "$OUT" ;;
   frame-grits) "$(dirname "$PWF")/python" -m benchmarks.frame_size --scenes grits --out "$OUT" ;;
   frame-defaults) "$(dirname "$PWF")/python" -m benchmarks.frame_size --scenes defaults --out "$OUT" ;;
+  frame-bead-grains) "$(dirname "$PWF")/python" -m benchmarks.frame_size --scenes bead-grains --out "$OUT" ;;
   frame-camera) "$(dirname "$PWF")/python" -m benchmarks.frame_size --scenes camera --out "$OUT" ;;
   edge-step) "$(dirname "$PWF")/python" -m benchmarks.edge_step --out "$OUT" ;;
   coherence-sensitivity) "$(dirname "$PWF")/python" -m benchmarks.coherence_sensitivity --out "$OUT" ;;
@@ -65,6 +67,6 @@ case "${1:-all}" in
   fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --part all --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-camera edge-step coherence-sensitivity coarse-start demo-dose random-scenes diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-camera|edge-step|coherence-sensitivity|coarse-start|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step coherence-sensitivity coarse-start demo-dose random-scenes diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|coherence-sensitivity|coarse-start|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
 esac
