@@ -32,6 +32,7 @@ import numpy as np
 from scipy import ndimage
 
 from benchmarks.edge_step import CAMERA_SHAPE
+from benchmarks.frame_size import fitted_phase_gain
 from benchmarks.reporting import device_name, write_rows_csv
 from pwf_dask.retrieval import retrieve_projection
 from pwf_dask.simulation import SpeckleSetup, SpeckleSimulator, simulate_projection
@@ -98,7 +99,7 @@ def phase_error(phase: np.ndarray, true_phase: np.ndarray) -> tuple[float, float
     """(relative rms error, gain) over the sample (true phase < -0.5 rad)."""
     inside = true_phase < -0.5
     err = np.sqrt(np.mean((phase - true_phase)[inside] ** 2) / np.mean(true_phase[inside] ** 2))
-    return float(err), float(np.polyfit(true_phase[inside], phase[inside], 1)[0])
+    return float(err), fitted_phase_gain(phase, true_phase)
 
 
 def scene_rows(name: str) -> list[dict]:

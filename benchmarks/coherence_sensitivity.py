@@ -23,6 +23,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from benchmarks.frame_size import fitted_phase_gain
 from benchmarks.reporting import device_name, write_rows_csv
 from benchmarks.stability import bead_regions, errors
 from pwf_dask.retrieval import retrieve_projection
@@ -40,13 +41,6 @@ SCENES = (
     ("4.5 um grains 256^2, seed 1", replace(SpeckleSetup(shape=(256, 256)), diffuser_radius_median_m=4.5e-6), 1),
     ("P3000 512^2, seed 1", SpeckleSetup(shape=(512, 512)), 1),
 )
-
-
-def phase_gain(phase: np.ndarray, true_phase: np.ndarray) -> float:
-    """The accuracy tests' gain (issue #27): the slope of a line (with offset) fitted to the
-    recovered against the true phase where the true phase is below -0.5 rad."""
-    inside = true_phase < -0.5
-    return float(np.polyfit(true_phase[inside], phase[inside], 1)[0])
 
 
 def run(sim, bead, label: str, scale: float | None) -> dict:
@@ -68,7 +62,7 @@ def run(sim, bead, label: str, scale: float | None) -> dict:
         "scale": float(r.coherence_length_x_m / sim.coherence_length_x_m),
         "scale_y": float(r.coherence_length_y_m / sim.coherence_length_y_m),
         "calibrated": scale is None,
-        "phase_gain": phase_gain(phase, sim.phase),
+        "phase_gain": fitted_phase_gain(phase, sim.phase),
         "phase_gain_origin": e["phase_gain"],
         "phase_error": e["phase_error"],
         "bead_contrast_error": e["bead_contrast_error"],

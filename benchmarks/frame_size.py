@@ -1,6 +1,6 @@
 """Phase gain against frame size, and the wide-strip regime of issue #27 (docs/methods.md, Wide frames).
 
-Two scenes, PWF with its defaults (calibrated coherence, automatic field grid and alpha):
+The scenes, PWF with its defaults (calibrated coherence, automatic field grid and alpha):
 
 1. ``beads``: the paper's geometry and diffuser (10 keV, 0.65 um, L1 = 3 mm, L2 = 20 mm, four
    layers of P3000, 1e4 ph/px); one cellulose rod with glass beads, sized for a 256 px field of
