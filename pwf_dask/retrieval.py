@@ -794,6 +794,10 @@ DIFFUSER_PROBE_ITER = 40
 #: ``"auto"`` takes the single-material fit over zero phase where its data residual after
 #: :data:`DIFFUSER_PROBE_ITER` iterations is below this fraction of zero phase's.
 DIFFUSER_PROBE_RATIO = 0.5
+#: Frame pixels the probe reads at most: a larger frame is probed on its centred window of
+#: about this many (:func:`probe_window`). The probe picks a model, not the phase, and its
+#: two runs cost 80 iterations: a quarter of the issue's whole 430 x 2220 frame's retrieval.
+DIFFUSER_PROBE_MAX_PX = 512 * 512
 
 
 @dataclass(frozen=True)
@@ -814,26 +818,51 @@ def probes_diffuser(requested: str, resolved: str) -> bool:
     return requested == "auto" and resolved == "zero-phase"
 
 
+def probe_window(frame_shape: tuple[int, int], max_px: int | None = None) -> tuple[slice, slice]:
+    """The frame's centred window the diffuser probe reads: the whole frame up to ``max_px``
+    pixels (default :data:`DIFFUSER_PROBE_MAX_PX`); beyond, as many whole rows as fit up to a
+    square's (a wide strip keeps its height) and the columns the pixel count leaves. Centred,
+    as a scan's rotation axis puts the sample."""
+    max_px = DIFFUSER_PROBE_MAX_PX if max_px is None else int(max_px)
+    ny, nx = frame_shape
+    if ny * nx <= max_px:
+        return slice(0, ny), slice(0, nx)
+    rows = min(ny, max(math.isqrt(max_px), max_px // nx))
+    columns = min(nx, max_px // rows)
+    y0, x0 = (ny - rows) // 2, (nx - columns) // 2
+    return slice(y0, y0 + rows), slice(x0, x0 + columns)
+
+
 def _probe_residual(t, pair: _Pair, opts: RetrievalOptions, geometry: Geometry) -> float:
     """The data residual (% of the mean reference) after :data:`DIFFUSER_PROBE_ITER`
     iterations of Algorithm S1 from zero with diffuser ``t``, on the first field grid, at the
     default alpha whatever the solve's: the residual ratio depends on the regularizer (scene 68
     of benchmarks/diffuser_models.py, calibrated lengths: 0.39 at 0.1 + 0.05i, 0.71 at the paper's 0.1 + 0.01i) and
-    :data:`DIFFUSER_PROBE_RATIO` was measured at the default."""
-    y = pair.y
+    :data:`DIFFUSER_PROBE_RATIO` was measured at the default. A frame over
+    :data:`DIFFUSER_PROBE_MAX_PX` is probed on its :func:`probe_window`, with t_r's window of
+    that sub-frame's computational grid (the field grid still chosen on the whole t_r)."""
+    y, excluded = pair.y, pair.excluded
     if pair.unseen is not None:
         t = calibration.shift_transmission(t, pair.drift, fft=pair.fft)
-    build = _model_builder(t, y.shape, geometry, pair.coherence, opts, pair.excluded, pair.fft)
     grid = _first_field_grid(
         opts.field_upsample, t, geometry.pixel_size_m, pair.coherence.x_m, pair.coherence.y_m, pair.fft
     )
+    rows, columns = probe_window(tuple(y.shape))
+    if (rows.stop - rows.start, columns.stop - columns.start) != tuple(y.shape):
+        y = y[rows, columns]
+        excluded = None if excluded is None else excluded[rows, columns]
+        # frame pixel (i, j) is t_r's (i + pad, j + pad): the window's grid starts at its
+        # corner; t_r is periodic on its grid, so a window grid longer than what is left wraps
+        ny, nx = computational_shape(tuple(y.shape), opts.pad)
+        t = get_array_module(t).roll(t, (-rows.start, -columns.start), axis=(0, 1))[:ny, :nx]
+    build = _model_builder(t, y.shape, geometry, pair.coherence, opts, excluded, pair.fft)
     model = build(field_upsample=grid.field_upsample, alpha=solver.DEFAULT_ALPHA)
     y_full = model.xp.zeros(model.shape, dtype=model.rdtype)
     y_full[model.frame] = y / pair.scale
     # exactly DIFFUSER_PROBE_ITER iterations, whatever the stop rule asked of the solve
     probe = replace(opts, max_iter=DIFFUSER_PROBE_ITER, min_iter=DIFFUSER_PROBE_ITER, tol=0.0, rtol=0.0, jtol=0.0)
     sol = _solver_run(y_full, probe)(model, psi0=None)
-    return residual_rmse_pct(sol, model, pair.excluded)
+    return residual_rmse_pct(sol, model, excluded)
 
 
 def _probed_diffuser(t_zero_phase, pair: _Pair, opts: RetrievalOptions, geometry: Geometry) -> DiffuserChoice:
