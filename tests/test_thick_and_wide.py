@@ -99,13 +99,18 @@ def test_coarse_pixels_go_on_a_finer_field_grid_and_hold():
 def test_phase_gain_does_not_follow_the_frame_around_the_sample():
     """Issue #27: the same sample (the paper's geometry and P3000 diffuser, a rod with beads
     sized for 256 px) in a 256^2 and a 512^2 frame, calibrated coherence: the phase gains agree
-    within 3 %. Measured 0.953 / 0.953 (and 0.957 at 1024^2: benchmarks/results/frame_size.md)."""
+    within 3 %, by the accuracy tests' measure (a line with offset fitted inside the sample):
+    1.008 / 1.003 (seeds 2 / 3: 0.998 / 0.997 and 0.993 / 1.007; 1024^2 within 1.4 % of both:
+    benchmarks/results/frame_size_bead_grains.md). The gain through the origin, which also
+    counts the sample's phase level against the background, reads 0.953 / 0.953 here but
+    moves with the draw (0.908 / 0.987 on seed 3): only its level is held."""
     from benchmarks.frame_size import beads
 
     rows = beads([256, 512], wrong_prior=False)
-    g = [r["phase_gain"] for r in rows]
-    assert abs(g[0] - g[1]) < 0.03 * np.mean(g), g
-    assert all(0.93 <= x <= 1.05 for x in g), g
+    fitted = [r["phase_gain_fitted"] for r in rows]
+    assert abs(fitted[0] - fitted[1]) < 0.03 * np.mean(fitted), fitted
+    assert all(0.95 <= x <= 1.05 for x in fitted), fitted
+    assert all(0.90 <= r["phase_gain"] <= 1.05 for r in rows), [r["phase_gain"] for r in rows]
     assert all(r["stop"] == "converged" for r in rows)
 
 
