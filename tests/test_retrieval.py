@@ -692,6 +692,25 @@ def test_the_probe_reads_a_wide_frame_on_its_window_with_the_diffuser_where_it_l
         assert window.residuals_pct[model] == pytest.approx(pct, rel=0.05), (window.residuals_pct, pct)
 
 
+@pytest.mark.gpu
+def test_the_probe_window_on_cupy_reads_as_on_numpy(cupy, monkeypatch):
+    """The window's slices and t_r's periodic window on the device, bad pixels left out in the
+    window as on the whole frame: the same residuals as NumPy's."""
+    from benchmarks.frame_size import STRIP_SETUP, strip_projection
+    from pwf_dask import retrieval
+
+    setup = replace(STRIP_SETUP, shape=(64, 320))
+    sample, reference, _, _ = strip_projection(setup, 1)
+    bad = np.zeros(sample.shape, bool)
+    bad[30:33, 150:152] = True  # inside the window
+    monkeypatch.setattr(retrieval, "DIFFUSER_PROBE_MAX_PX", 64 * 160)
+    cpu = retrieval.choose_diffuser(sample, reference, **setup.geometry(), bad_pixels=bad)
+    gpu = retrieval.choose_diffuser(cupy.asarray(sample), cupy.asarray(reference), **setup.geometry(), bad_pixels=bad)
+    assert gpu.model == cpu.model and isinstance(gpu.transmission, cupy.ndarray)
+    for model, pct in cpu.residuals_pct.items():
+        assert gpu.residuals_pct[model] == pytest.approx(pct, rel=1e-3)
+
+
 def test_auto_probes_only_where_the_absorption_rule_gives_zero_phase():
     """Asked by name, or where the grains absorb (10 keV), no probe runs: the model named or
     chosen by absorption, as before the probe."""
