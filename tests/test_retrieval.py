@@ -389,8 +389,6 @@ def test_small_strong_bead_overshoots_with_the_papers_alpha():
     """Where the paper's alpha fails: a 16-px-radius glass bead in a 128^2 frame. It damps the
     bead's attenuation (Re alpha) and the phase makes up the missing signal, so the bead's phase
     contrast overshoots; the default alpha (Im 0.05) holds it."""
-    from dataclasses import replace
-
     from benchmarks import stability
 
     setup = SpeckleSetup(shape=(128, 128), photons=1e4)
@@ -513,7 +511,6 @@ def test_a_weakly_absorbing_diffuser_takes_the_zero_phase_estimate_by_default():
     error 0.60, gain 0.40); the default ``diffuser_model="auto"`` takes the paper's zero-phase
     estimate there and records the choice (0.137 measured, gain 0.88; docs/validation.md,
     Weak diffuser absorption)."""
-    from dataclasses import replace
 
     sim = simulate_projection(replace(SpeckleSetup(shape=(256, 256)), energy_eV=20e3), seed=1)
     background = np.abs(sim.phase) < 1e-3 * np.abs(sim.phase).max()
