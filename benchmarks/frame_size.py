@@ -163,10 +163,15 @@ def strip_crop(setup: SpeckleSetup, rows: int, columns: int):
     return np.s_[y0 : y0 + rows, :columns]
 
 
+def strip_setup(grit: str | None = None) -> SpeckleSetup:
+    """The strip regime with the diffuser of sandpaper ``grit`` instead of P3000 (None)."""
+    return STRIP_SETUP if grit is None else replace(STRIP_SETUP, diffuser_grit=grit, diffuser_radius_median_m=None)
+
+
 def strip(truth_start: bool, seed: int = 1, grit: str | None = None, crops=STRIP_CROPS) -> list[dict]:
     """The strip regime's crops, each without and with the single-material prior; ``grit``
     replaces the default P3000 diffuser (the scene is then named by it)."""
-    setup = STRIP_SETUP if grit is None else replace(STRIP_SETUP, diffuser_grit=grit, diffuser_radius_median_m=None)
+    setup = strip_setup(grit)
     scene = "strip" if grit is None else f"strip, {grit}"
     sample, reference, phase, attenuation = strip_projection(setup, seed)
     rows = []

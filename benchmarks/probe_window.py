@@ -19,11 +19,17 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import replace
 
 import numpy as np
 
-from benchmarks.frame_size import STRIP_SETUP, phase_gain, phase_rms_error, strip_crop, strip_projection
+from benchmarks.frame_size import (
+    STRIP_SETUP,
+    phase_gain,
+    phase_rms_error,
+    strip_crop,
+    strip_projection,
+    strip_setup,
+)
 from benchmarks.reporting import device_name, write_rows_csv
 from pwf_dask import retrieval
 
@@ -38,12 +44,6 @@ SCENES = (
 )
 #: the cap that probes every frame whole (the code before session 59)
 WHOLE_FRAME = 10**12
-
-
-def _setup(grit: str):
-    if grit == "P3000":
-        return STRIP_SETUP
-    return replace(STRIP_SETUP, diffuser_grit=grit, diffuser_radius_median_m=None)
 
 
 def _with_cap(cap: int, call, *args, **kwargs):
@@ -61,7 +61,7 @@ def choices() -> list[dict]:
     """Per scene, the probe on the whole frame and on its window."""
     rows = []
     for grit, seed, (ny, nx) in SCENES:
-        setup = _setup(grit)
+        setup = strip_setup(None if grit == "P3000" else grit)
         sample, reference, _, _ = strip_projection(setup, seed)
         crop = strip_crop(setup, ny, nx)
         for probed, cap in (("whole frame", WHOLE_FRAME), ("window", retrieval.DIFFUSER_PROBE_MAX_PX)):
