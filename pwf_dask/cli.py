@@ -399,7 +399,7 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
         choices=DIFFUSER_MODEL_CHOICES,
         help="diffuser estimate from the reference: one material fitted, the paper's zero phase, or auto "
         "(default): one material where the diffuser absorbs at least 5 /mm (silicon carbide up to ~11 keV), "
-        "else zero phase unless a 40-iteration probe of both on each position's middle projection leaves "
+        "else zero phase unless a 20-iteration probe of both on each position's middle projection leaves "
         "the one material under half of zero phase's residual",
     )
     p.add_argument(

@@ -789,14 +789,17 @@ def _prepared_pair(
 
 
 #: Iterations of each diffuser model that ``diffuser_model="auto"`` runs on the sample where
-#: the absorption rule gives zero phase (:func:`_probed_diffuser`).
-DIFFUSER_PROBE_ITER = 40
+#: the absorption rule gives zero phase (:func:`_probed_diffuser`): 20 choose as 40 did on
+#: every probed random scene and strip, true or calibrated lengths, at about 0.6x the cost; 10
+#: lose one (benchmarks/probe_iterations.py).
+DIFFUSER_PROBE_ITER = 20
 #: ``"auto"`` takes the single-material fit over zero phase where its data residual after
 #: :data:`DIFFUSER_PROBE_ITER` iterations is below this fraction of zero phase's.
 DIFFUSER_PROBE_RATIO = 0.5
 #: Frame pixels the probe reads at most: a larger frame is probed on its centred window of
-#: about this many (:func:`probe_window`). The probe picks a model, not the phase, and its
-#: two runs cost 80 iterations: a quarter of the issue's whole 430 x 2220 frame's retrieval.
+#: about this many (:func:`probe_window`). The probe picks a model, not the phase; whole, its
+#: two 40-iteration runs took a quarter of the issue's 430 x 2220 frame's retrieval, and its
+#: single-material fit of the whole reference half the probe's time there.
 DIFFUSER_PROBE_MAX_PX = 512 * 512
 
 
@@ -837,32 +840,40 @@ def _probe_residual(t, pair: _Pair, opts: RetrievalOptions, geometry: Geometry) 
     """The data residual (% of the mean reference) after :data:`DIFFUSER_PROBE_ITER`
     iterations of Algorithm S1 from zero with diffuser ``t``, on the first field grid, at the
     default alpha whatever the solve's: the residual ratio depends on the regularizer (scene 68
-    of benchmarks/diffuser_models.py, calibrated lengths: 0.39 at 0.1 + 0.05i, 0.71 at the paper's 0.1 + 0.01i) and
-    :data:`DIFFUSER_PROBE_RATIO` was measured at the default. A frame over
-    :data:`DIFFUSER_PROBE_MAX_PX` is probed on its :func:`probe_window`, with t_r's window of
-    that sub-frame's computational grid (the field grid still chosen on the whole t_r)."""
-    y, excluded = pair.y, pair.excluded
+    of benchmarks/diffuser_models.py, calibrated lengths, 40 iterations: 0.39 at 0.1 + 0.05i,
+    0.71 at the paper's 0.1 + 0.01i) and :data:`DIFFUSER_PROBE_RATIO` was measured at the
+    default."""
     if pair.unseen is not None:
         t = calibration.shift_transmission(t, pair.drift, fft=pair.fft)
     grid = _first_field_grid(
         opts.field_upsample, t, geometry.pixel_size_m, pair.coherence.x_m, pair.coherence.y_m, pair.fft
     )
-    rows, columns = probe_window(tuple(y.shape))
-    if (rows.stop - rows.start, columns.stop - columns.start) != tuple(y.shape):
-        y = y[rows, columns]
-        excluded = None if excluded is None else excluded[rows, columns]
-        # frame pixel (i, j) is t_r's (i + pad, j + pad): the window's grid starts at its
-        # corner; t_r is periodic on its grid, so a window grid longer than what is left wraps
-        ny, nx = computational_shape(tuple(y.shape), opts.pad)
-        t = get_array_module(t).roll(t, (-rows.start, -columns.start), axis=(0, 1))[:ny, :nx]
-    build = _model_builder(t, y.shape, geometry, pair.coherence, opts, excluded, pair.fft)
+    build = _model_builder(t, pair.y.shape, geometry, pair.coherence, opts, pair.excluded, pair.fft)
     model = build(field_upsample=grid.field_upsample, alpha=solver.DEFAULT_ALPHA)
     y_full = model.xp.zeros(model.shape, dtype=model.rdtype)
-    y_full[model.frame] = y / pair.scale
+    y_full[model.frame] = pair.y / pair.scale
     # exactly DIFFUSER_PROBE_ITER iterations, whatever the stop rule asked of the solve
     probe = replace(opts, max_iter=DIFFUSER_PROBE_ITER, min_iter=DIFFUSER_PROBE_ITER, tol=0.0, rtol=0.0, jtol=0.0)
     sol = _solver_run(y_full, probe)(model, psi0=None)
-    return residual_rmse_pct(sol, model, excluded)
+    return residual_rmse_pct(sol, model, pair.excluded)
+
+
+def _probe_pair(pair: _Pair) -> _Pair:
+    """The pair the probe reads: the whole frame up to :data:`DIFFUSER_PROBE_MAX_PX`, beyond it
+    the :func:`probe_window` crop as a frame of its own (its mean the data term's unit)."""
+    rows, columns = probe_window(tuple(pair.y.shape))
+    if (rows.stop - rows.start, columns.stop - columns.start) == tuple(pair.y.shape):
+        return pair
+    ref = pair.ref[rows, columns]
+    return replace(
+        pair,
+        y=pair.y[rows, columns],
+        ref=ref,
+        scale=float(get_array_module(ref).mean(ref)),
+        excluded=None if pair.excluded is None else pair.excluded[rows, columns],
+        unseen=None if pair.unseen is None else pair.unseen[rows, columns],
+        background_mask=None,
+    )
 
 
 def _probed_diffuser(t_zero_phase, pair: _Pair, opts: RetrievalOptions, geometry: Geometry) -> DiffuserChoice:
@@ -870,18 +881,28 @@ def _probed_diffuser(t_zero_phase, pair: _Pair, opts: RetrievalOptions, geometry
     estimate, ``t_zero_phase``), unless a short run with the single-material fit leaves under
     :data:`DIFFUSER_PROBE_RATIO` of zero phase's data residual. On 80 random scenes this
     switched 4 (their phase error 1.28 -> 0.09 at best) and none the wrong way
-    (docs/validation.md, "Which diffuser model, scene by scene")."""
+    (docs/validation.md, "Which diffuser model, scene by scene"). A frame over
+    :data:`DIFFUSER_PROBE_MAX_PX` is probed on its :func:`probe_window` as a frame of its own,
+    both diffuser estimates of the window's reference; the whole frame's single-material fit
+    is made only where it is chosen."""
     single = replace(opts, diffuser_model="single-material")
     kappa = chosen_diffuser_model(
         "single-material", opts.diffuser_material, opts.diffuser_beta_over_delta, geometry.energy_eV
     )[1]
-    t_single = _transmission(pair.ref, None, single, geometry, pair.coherence, pair.y.shape, pair.fft)
+    probed = _probe_pair(pair)
+    windowed = probed is not pair
+
+    def estimate(o: RetrievalOptions, p: _Pair):
+        return _transmission(p.ref, None, o, geometry, p.coherence, p.y.shape, p.fft)
+
+    t_zero = estimate(opts, probed) if windowed else t_zero_phase
+    t_single = estimate(single, probed)
     residuals = {
-        "zero-phase": _probe_residual(t_zero_phase, pair, opts, geometry),
-        "single-material": _probe_residual(t_single, pair, single, geometry),
+        "zero-phase": _probe_residual(t_zero, probed, opts, geometry),
+        "single-material": _probe_residual(t_single, probed, single, geometry),
     }
     if residuals["single-material"] < DIFFUSER_PROBE_RATIO * residuals["zero-phase"]:
-        return DiffuserChoice("single-material", t_single, kappa, residuals)
+        return DiffuserChoice("single-material", estimate(single, pair) if windowed else t_single, kappa, residuals)
     return DiffuserChoice("zero-phase", t_zero_phase, None, residuals)
 
 
