@@ -1,8 +1,9 @@
 """The diffuser probe on a window of wide frames against the whole frame (docs/methods.md,
 "The probe on a window of wide frames").
 
-``diffuser_model="auto"`` probes both diffuser models for 40 iterations where the absorption
-rule gives zero phase (25 keV here). A frame over
+``diffuser_model="auto"`` probes both diffuser models for
+:data:`pwf_dask.retrieval.DIFFUSER_PROBE_ITER` iterations where the absorption rule gives zero
+phase (25 keV here). A frame over
 :data:`pwf_dask.retrieval.DIFFUSER_PROBE_MAX_PX` is probed on its centred window
 (:func:`pwf_dask.retrieval.probe_window`). For each strip of the issue's real-data regime
 (25 keV, 6.5 um pixels, four PMMA rods; P3000 on four draws, P1200 and P2000) this runs
@@ -18,7 +19,6 @@ Writes ``probe_window.md``, ``.csv`` and ``probe_window_call.csv`` (about 7 minu
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 
@@ -30,7 +30,7 @@ from benchmarks.frame_size import (
     strip_projection,
     strip_setup,
 )
-from benchmarks.reporting import device_name, write_rows_csv
+from benchmarks.reporting import device_name, timed_with, write_rows_csv
 from pwf_dask import retrieval
 
 #: (grit, seed, frame): the issue's whole frame on four P3000 draws and two coarser grits,
@@ -46,17 +46,6 @@ SCENES = (
 WHOLE_FRAME = 10**12
 
 
-def _with_cap(cap: int, call, *args, **kwargs):
-    """(``call(*args, **kwargs)``, seconds) with the probe's pixel cap set to ``cap``, restored after."""
-    kept = retrieval.DIFFUSER_PROBE_MAX_PX
-    retrieval.DIFFUSER_PROBE_MAX_PX = cap
-    try:
-        t0 = time.perf_counter()
-        return call(*args, **kwargs), time.perf_counter() - t0
-    finally:
-        retrieval.DIFFUSER_PROBE_MAX_PX = kept
-
-
 def choices() -> list[dict]:
     """Per scene, the probe on the whole frame and on its window."""
     rows = []
@@ -66,8 +55,14 @@ def choices() -> list[dict]:
         crop = strip_crop(setup, ny, nx)
         for probed, cap in (("whole frame", WHOLE_FRAME), ("window", retrieval.DIFFUSER_PROBE_MAX_PX)):
             window = retrieval.probe_window((ny, nx), cap)
-            choice, seconds = _with_cap(
-                cap, retrieval.choose_diffuser, sample[crop], reference[crop], **setup.geometry()
+            choice, seconds = timed_with(
+                retrieval,
+                "DIFFUSER_PROBE_MAX_PX",
+                cap,
+                retrieval.choose_diffuser,
+                sample[crop],
+                reference[crop],
+                **setup.geometry(),
             )
             r = choice.residuals_pct
             rows.append(
@@ -92,7 +87,15 @@ def whole_frame_call() -> list[dict]:
     sample, reference, phase, _ = strip_projection(STRIP_SETUP, 1)
     rows = []
     for probed, cap in (("whole frame", WHOLE_FRAME), ("window", retrieval.DIFFUSER_PROBE_MAX_PX)):
-        r, seconds = _with_cap(cap, retrieval.retrieve_projection, sample, reference, **STRIP_SETUP.geometry())
+        r, seconds = timed_with(
+            retrieval,
+            "DIFFUSER_PROBE_MAX_PX",
+            cap,
+            retrieval.retrieve_projection,
+            sample,
+            reference,
+            **STRIP_SETUP.geometry(),
+        )
         rows.append(
             {
                 "probed": probed,
@@ -113,9 +116,10 @@ def write_markdown(probes: list[dict], calls: list[dict], path: str) -> None:
         "",
         f"`python -m benchmarks.probe_window` on {device_name(np)}. `choose_diffuser` on the strip regime "
         "(25 keV, 6.5 um pixels, the diffuser 50 mm upstream, L1 = 0, L2 = 0.7 m, four PMMA rods), the probe "
-        "on the whole frame and on its centred window of at most 512^2 pixels; residuals after 40 iterations "
-        "of each model, % of the mean reference; ratio = single material / zero phase ('auto' takes the "
-        "single-material fit below 0.5). Seconds include both diffuser estimates.",
+        "on the whole frame and on its centred window of at most 512^2 pixels; residuals after "
+        f"{retrieval.DIFFUSER_PROBE_ITER} iterations of each model, % of the mean reference; ratio = single "
+        "material / zero phase ('auto' takes the single-material fit below 0.5). Seconds include both diffuser "
+        "estimates.",
         "",
         "| scene | frame | probed | model | zero phase % | single material % | ratio | s |",
         "|---|---|---|---|---:|---:|---:|---:|",

@@ -42,6 +42,18 @@ def device_name(xp) -> str:
     return name.decode() if isinstance(name, bytes) else str(name)
 
 
+def timed_with(module, name: str, value, call, *args, **kwargs):
+    """(``call(*args, **kwargs)``, seconds) with ``module.name`` set to ``value`` for the call
+    (a module constant a study varies, such as the diffuser probe's length), restored after."""
+    kept = getattr(module, name)
+    setattr(module, name, value)
+    try:
+        t0 = time.perf_counter()
+        return call(*args, **kwargs), time.perf_counter() - t0
+    finally:
+        setattr(module, name, kept)
+
+
 def _parse_cell(text: str):
     if text in ("True", "False"):
         return text == "True"

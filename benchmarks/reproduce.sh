@@ -25,6 +25,7 @@
 #   coherence_sensitivity.* ~12 min: phase gain against coherence-length error (0.7-1.3x), every other default
 #   coarse_start.*     ~25 min: a coarse-to-fine start (2x2 binned solve) against zero and the true psi
 #   probe_window.*     ~7 min: "auto"'s diffuser probe on a window of wide frames against the whole frame
+#   probe_iterations.* ~25 min: "auto"'s diffuser probe at 10 / 20 / 40 iterations on the random scenes and strips
 #   bench_fbp_cpu.*    ~5 min: gridding FBP against the backprojector, 2560 px x 801 angles
 #   bench_per_scan_cpu.* ~3 min: calibration, diffuser fit and model build against one retrieval
 #   field_grid.*       ~20 min: phase gain and iteration cost of the field grid 1x-2x on P3000 scenes, exp(psi) on either grid
@@ -58,6 +59,7 @@ case "${1:-all}" in
   coherence-sensitivity) "$(dirname "$PWF")/python" -m benchmarks.coherence_sensitivity --out "$OUT" ;;
   coarse-start) "$(dirname "$PWF")/python" -m benchmarks.coarse_start --curve --out "$OUT" ;;
   probe-window) "$(dirname "$PWF")/python" -m benchmarks.probe_window --out "$OUT" ;;
+  probe-iterations) "$(dirname "$PWF")/python" -m benchmarks.probe_iterations --out "$OUT" ;;
   demo-dose) "$(dirname "$PWF")/python" -m benchmarks.demo_dose --out "$OUT" ;;
   random-scenes) "$(dirname "$PWF")/python" -m benchmarks.random_scenes --out "$OUT" ;;
   diffuser-models) "$(dirname "$PWF")/python" -m benchmarks.diffuser_models --out "$OUT" ;;
@@ -69,6 +71,6 @@ case "${1:-all}" in
   fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --part all --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step coherence-sensitivity coarse-start probe-window demo-dose random-scenes diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|coherence-sensitivity|coarse-start|probe-window|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step coherence-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|coherence-sensitivity|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
 esac

@@ -520,8 +520,9 @@ def per_scan_probe(rows: int, columns: int) -> dict:
     """``diffuser_model="auto"``'s probe, once per diffuser position where the absorption rule
     gives zero phase: on the issue's real-data regime (25 keV, the strip of PMMA rods of
     benchmarks/frame_size.py, a crop of ``rows`` x ``columns``; the true coherence lengths, one
-    FFT thread), :func:`pwf_dask.retrieval.choose_diffuser` less the zero-phase estimate both
-    models need, against one projection's retrieval with the model chosen."""
+    FFT thread), :func:`pwf_dask.retrieval.choose_diffuser` less the whole frame's zero-phase
+    estimate (the retrieval needs it whatever the model), against one projection's retrieval
+    with the model chosen."""
     from benchmarks.frame_size import STRIP_SETUP, strip_crop, strip_projection
     from pwf_dask import retrieval
 
@@ -565,6 +566,8 @@ def per_scan_probe(rows: int, columns: int) -> dict:
 
 
 def _probe_lines(rows: list[dict]) -> list[str]:
+    from pwf_dask.retrieval import DIFFUSER_PROBE_ITER
+
     if not rows:
         return []
     return [
@@ -573,9 +576,11 @@ def _probe_lines(rows: list[dict]) -> list[str]:
         "",
         "Once per position where the absorption rule gives zero phase (`retrieval.choose_diffuser` on a scan's",
         "middle angle): the issue's real-data regime (25 keV, 6.5 um pixels, L1 = 0, L2 = 0.7 m, the strip of",
-        "PMMA rods of `benchmarks/frame_size.py`, true coherence lengths, one FFT thread). Probe: the",
-        "single-material fit and 40 iterations of each model, on the frame's centred window of at most 512^2",
-        "pixels (`retrieval.probe_window`); retrieval: one projection with the model chosen, default stop.",
+        "PMMA rods of `benchmarks/frame_size.py`, true coherence lengths, one FFT thread). Probe: both diffuser",
+        f"estimates and {DIFFUSER_PROBE_ITER} iterations of each model on the frame's centred window of at most",
+        "512^2 pixels, a frame of its own (`retrieval.probe_window`); the whole frame's zero-phase estimate,",
+        "which the retrieval needs anyway, not counted. Retrieval: one projection with the model chosen,",
+        "default stop.",
         "",
         "| frame | probed | model | probe (s) | retrieval (s) | iterations | probe / retrieval |",
         "|---|---|---|---:|---:|---:|---:|",
