@@ -1,4 +1,5 @@
-"""How many iterations the diffuser probe needs (docs/methods.md, "The probe's length").
+"""How many iterations the diffuser probe needs (docs/methods.md, "The probe's length and its
+window's own estimates").
 
 ``diffuser_model="auto"`` probes both diffuser models where the absorption rule gives zero
 phase: :data:`pwf_dask.retrieval.DIFFUSER_PROBE_ITER` iterations of each from zero, then the
