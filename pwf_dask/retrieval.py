@@ -797,9 +797,9 @@ DIFFUSER_PROBE_ITER = 20
 #: :data:`DIFFUSER_PROBE_ITER` iterations is below this fraction of zero phase's.
 DIFFUSER_PROBE_RATIO = 0.5
 #: Frame pixels the probe reads at most: a larger frame is probed on its centred window of
-#: about this many (:func:`probe_window`). The probe picks a model, not the phase; whole, its
-#: two 40-iteration runs took a quarter of the issue's 430 x 2220 frame's retrieval, and its
-#: single-material fit of the whole reference half the probe's time there.
+#: about this many (:func:`probe_window`), as a frame of its own. The probe picks a model, not
+#: the phase: probed whole with 40 iterations it took a quarter of the issue's 430 x 2220
+#: frame's retrieval; on its window, with its own diffuser estimates and 20 iterations, 5 %.
 DIFFUSER_PROBE_MAX_PX = 512 * 512
 
 
