@@ -6,13 +6,15 @@
 - ``threads``: full-frame projections retrieved one after another against as many threads
   sharing the GPU, each on its own stream (``backend.task_stream``) and all on the null stream;
 - ``strip ANGLES``: a 32 x 2560 paper-optics scan of ANGLES angles through ``retrieve_scan``
-  on the GPU, with and without the task streams: iterations per projection and wall time.
-
+  on the GPU, with and without the task streams: iterations per projection and wall time;
 - ``camera [ROWS COLUMNS]``: the paper preset's projection on the whole 2160 x 2560 camera frame
   (``frame_size_camera.md``'s last row) retrieved on the device, calibrated and with the lengths
-  given, the CUDA kernels off and on: gain, error, iterations and seconds.
+  given, the CUDA kernels off and on: gain, error, iterations and seconds; then 2-4 of it at
+  once on their own streams (:func:`concurrent_rows`: a scan's throughput per GPU);
+- ``tomo``: a 801-angle x 8-row x 2560-px block of exact disc sinograms through the device's
+  FBP and the host's gridrec (:func:`tomo_rows`): seconds a slice, errors, agreement.
 
-``python -m benchmarks.gpu_checks OUT_DIR memory|threads|strip [ANGLES]|camera``: one JSON line per row
+``python -m benchmarks.gpu_checks OUT_DIR memory|threads|strip [ANGLES]|camera|tomo``: one JSON line per row
 on stdout, and ``OUT_DIR/<part>.json``. Session 42's rows: ``benchmarks/results/memory_model_gpu.md``
 and docs/benchmarks.md ("On a GPU").
 """
@@ -79,6 +81,14 @@ def memory_rows(cp, rng) -> list[dict]:
     return rows
 
 
+def _at_once(fn, n: int) -> tuple[list, float]:
+    """fn(0) .. fn(n - 1) on ``n`` threads at once: their results and the wall seconds."""
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(n) as pool:
+        results = list(pool.map(fn, range(n)))
+    return results, time.perf_counter() - t0
+
+
 def thread_rows(cp, rng, n: int = 3, iterations: int = 60) -> list[dict]:
     sample, ref = frames((2160, 2560), rng)
 
@@ -101,10 +111,7 @@ def thread_rows(cp, rng, n: int = 3, iterations: int = 60) -> list[dict]:
         t0 = time.perf_counter()
         alone = [one(k) for k in range(n)]
         t_alone = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        with ThreadPoolExecutor(n) as pool:
-            shared = list(pool.map(one, range(n)))
-        t_shared = time.perf_counter() - t0
+        shared, t_shared = _at_once(one, n)
         rows.append(
             dict(
                 shape="2160x2560",
@@ -216,7 +223,104 @@ def camera_rows(cp, shape=(2160, 2560), seed: int = 0) -> list[dict]:
             )
         )
         print(json.dumps(rows[-1]), flush=True)
+    rows += concurrent_rows(cp, lambda: retrieve(sample, reference, False, **lengths), rows[1]["seconds"])
     return rows
+
+
+def concurrent_rows(cp, retrieve_one, alone_s: float, counts=(2, 3, 4)) -> list[dict]:
+    """Throughput of one GPU on whole camera frames: ``n`` retrievals at once on ``n``
+    threads, each on its own stream (``backend.task_stream``, as ``pwf-dask run --device
+    gpu`` runs its tasks), against ``alone_s``, one retrieval alone. A scan's throughput is
+    the seconds per projection at the count that fits the GPU's memory."""
+
+    def one(_):
+        with backend.task_stream(cp):
+            return retrieve_one()
+
+    rows = []
+    for n in counts:
+        results, wall = _at_once(one, n)
+        rows.append(
+            dict(
+                concurrent=n,
+                wall_s=wall,
+                seconds_per_projection=wall / n,
+                gain=alone_s * n / wall,
+                iterations=[r[0].iterations for r in results],
+                max_phase_difference=max(float(np.abs(r[1] - results[0][1]).max()) for r in results),
+            )
+        )
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def _disc_sinogram(angles_deg, rows: int, width: int, rng):
+    """The exact parallel-beam sinogram (angle, row, x) of a few discs of random radius,
+    centre and value per row (chords 2 sqrt(r^2 - (s - s0)^2)), and the slices (row, v, u)."""
+    s = np.arange(width) - (width - 1) / 2
+    theta = np.deg2rad(np.asarray(angles_deg))[:, None]
+    sino = np.zeros((len(angles_deg), rows, width), np.float32)
+    truth = np.zeros((rows, width, width), np.float32)
+    vv, uu = np.meshgrid(s, s, indexing="ij")
+    for r in range(rows):
+        for _ in range(6):
+            radius = rng.uniform(0.03, 0.2) * width
+            cu, cv = rng.uniform(-0.25, 0.25, 2) * width
+            value = rng.uniform(0.5, 2.0)
+            s0 = cu * np.cos(theta) + cv * np.sin(theta)
+            sino[:, r] += value * 2 * np.sqrt(np.clip(radius**2 - (s[None] - s0) ** 2, 0, None))
+            truth[r] += value * ((uu - cu) ** 2 + (vv - cv) ** 2 <= radius**2)
+    return sino, truth
+
+
+def tomo_rows(cp, rows: int = 8, angles: int = 801, width: int = 2560) -> list[dict]:
+    """One tomography block on the device (the backprojector; gridrec where cufinufft is
+    installed) against gridrec on the host's cores (finufft): seconds per slice at the camera's
+    width and the paper's angles, and how far the two agree inside the field of view."""
+    from pwf_dask.backend import FFT, default_fft_workers
+    from pwf_dask.tomo import gridrec, tomography
+
+    theta = np.linspace(0.0, 180.0, angles, endpoint=False)
+    sino, truth = _disc_sinogram(theta, rows, width, np.random.default_rng(0))
+    yy, xx = np.mgrid[:width, :width] - (width - 1) / 2
+    inside = xx**2 + yy**2 < (0.45 * width) ** 2
+    host_fft = FFT.for_module(np, default_fft_workers())
+    device_fft = FFT.for_module(cp)
+    out, results = [], {}
+    plans = [("host", "gridrec", np, host_fft), ("device", "backproject", cp, device_fft)]
+    if gridrec.available(cp):
+        plans.append(("device", "gridrec", cp, device_fft))
+    for where, method, xp, fft in plans:
+        tomography.back_projection(xp.asarray(sino[:8, :1, :256]), theta[:8], 1.0, fft=fft, method=method)
+        cp.cuda.Stream.null.synchronize()
+        t0 = time.perf_counter()
+        slices = tomography.back_projection(xp.asarray(sino), theta, 1.0, fft=fft, method=method)
+        slices = cp.asnumpy(slices) if xp is cp else slices
+        seconds = time.perf_counter() - t0
+        results[(where, method)] = slices
+        error = np.sqrt(np.mean((slices[:, inside] - truth[:, inside]) ** 2) / np.mean(truth[:, inside] ** 2))
+        out.append(
+            dict(
+                where=where,
+                fbp=method,
+                threads=fft.workers if xp is np else None,
+                angles=angles,
+                rows=rows,
+                width_px=width,
+                seconds=seconds,
+                seconds_per_slice=seconds / rows,
+                position_s=seconds / rows * 2160 * 2,  # phase and attenuation, 2160 rows
+                relative_rms_error_to_truth=float(error),
+            )
+        )
+        print(json.dumps(out[-1]), flush=True)
+    host, device = results[("host", "gridrec")], results[("device", "backproject")]
+    agreement = np.sqrt(np.mean((device[:, inside] - host[:, inside]) ** 2) / np.mean(host[:, inside] ** 2))
+    out.append(dict(device_backproject_vs_host_gridrec_relative_rms=float(agreement)))
+    print(json.dumps(out[-1]), flush=True)
+    if not gridrec.available(cp):
+        out.append(dict(note="cufinufft is not installed: no gridrec on the device"))
+    return out
 
 
 def main(argv=None) -> None:
@@ -232,8 +336,10 @@ def main(argv=None) -> None:
         rows = camera_rows(cp, tuple(int(n) for n in argv[2:4]) if len(argv) > 3 else (2160, 2560))
     elif part == "strip":
         rows = strip_rows(int(argv[2]) if len(argv) > 2 else 101)
+    elif part == "tomo":
+        rows = tomo_rows(cp)
     else:
-        raise SystemExit(f"unknown part {part!r}: memory, threads, strip or camera")
+        raise SystemExit(f"unknown part {part!r}: memory, threads, strip, camera or tomo")
     with open(f"{out}/{part}.json", "w") as f:
         json.dump(rows, f, indent=1)
 

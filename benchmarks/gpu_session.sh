@@ -1,13 +1,15 @@
 #!/usr/bin/env bash
 # The device checks of a lent or new GPU node in one pass, each step under its own time limit so
 # that one stuck step leaves the others' results: the CUDA kernels' test, the GPU tests, the
-# iteration bench, then benchmarks/gpu_checks.py's camera, threads and strip parts.
+# iteration bench, then benchmarks/gpu_checks.py's camera part (the whole frame alone and
+# 2-4 at once on one GPU), its tomo part (a 2560-wide block on the device and on the host's
+# cores) and, while BUDGET_S seconds last, its strip part.
 #
-#   bash benchmarks/gpu_session.sh OUT_DIR [STRIP_ANGLES]
+#   BUDGET_S=540 bash benchmarks/gpu_session.sh OUT_DIR [STRIP_ANGLES]
 #
 # Writes OUT_DIR/log.txt (every step's tail, with seconds since the start), OUT_DIR/bench/
-# (bench_iteration_gpu.*) and OUT_DIR/{camera,threads,strip}.json. About 8 minutes on an H200
-# (session 48; docs/gpu.md). Needs the package importable (pip install -e ".[gpu,test]", or
+# (bench_iteration_gpu.*) and OUT_DIR/{camera,tomo,strip}.json. About 9 minutes on an H200
+# (session 61; docs/gpu.md). Needs the package importable (pip install -e ".[gpu,test]", or
 # PYTHONPATH set to the checkout) and a CUDA device.
 set -u -o pipefail
 out=${1:?usage: gpu_session.sh OUT_DIR [STRIP_ANGLES]}
@@ -20,15 +22,18 @@ t0=$(date +%s)
 step() { echo "== [$(($(date +%s) - t0)) s] $*" | tee -a "$log"; }
 { nvidia-smi -L; "$py" -c "import cupy, numpy; print('cupy', cupy.__version__, 'numpy', numpy.__version__)"; } 2>&1 | tee -a "$log"
 step "CUDA kernels' test"
-PWF_DASK_CUDA_KERNELS=1 timeout 90 "$py" -m pytest -m gpu tests/test_kernels.py -q -p no:cacheprovider -rfE 2>&1 | tail -20 | tee -a "$log"
+PWF_DASK_CUDA_KERNELS=1 timeout 60 "$py" -m pytest -m gpu tests/test_kernels.py -q -p no:cacheprovider -rfE 2>&1 | tail -20 | tee -a "$log"
 step "pytest -m gpu (device tests)"
-timeout 150 "$py" -m pytest -m gpu -k device -q -p no:cacheprovider -n 8 -rfE 2>&1 | tail -20 | tee -a "$log"
+timeout 120 "$py" -m pytest -m gpu -k device -q -p no:cacheprovider -n 8 -rfE 2>&1 | tail -20 | tee -a "$log"
 step "bench iteration (CUDA kernels timed beside the default)"
-timeout 180 "$py" -m pwf_dask.cli bench iteration --device gpu --out "$out/bench" 2>&1 | tail -24 | tee -a "$log"
-step "camera: the paper preset's whole 2160 x 2560 frame"
-timeout 150 "$py" -m benchmarks.gpu_checks "$out" camera 2>&1 | tail -5 | tee -a "$log"
-step "threads"
-timeout 60 "$py" -m benchmarks.gpu_checks "$out" threads 2>&1 | tail -3 | tee -a "$log"
-step "strip $angles"
-timeout 200 "$py" -m benchmarks.gpu_checks "$out" strip "$angles" 2>&1 | grep '^{' | tail -3 | tee -a "$log"
+timeout 170 "$py" -m pwf_dask.cli bench iteration --device gpu --out "$out/bench" 2>&1 | tail -30 | tee -a "$log"
+step "camera: the paper preset's whole 2160 x 2560 frame, alone and 2-4 at once"
+timeout 150 "$py" -m benchmarks.gpu_checks "$out" camera 2>&1 | tail -8 | tee -a "$log"
+step "tomo: 801 angles x 8 rows x 2560 px, device and host"
+timeout 60 "$py" -m benchmarks.gpu_checks "$out" tomo 2>&1 | tail -5 | tee -a "$log"
+left=$((${BUDGET_S:-540} - ($(date +%s) - t0)))
+if [ "$left" -gt 60 ]; then
+    step "strip $angles ($left s left)"
+    timeout "$left" "$py" -m benchmarks.gpu_checks "$out" strip "$angles" 2>&1 | grep '^{' | tail -3 | tee -a "$log"
+fi
 step "end"

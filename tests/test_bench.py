@@ -47,6 +47,21 @@ def test_bench_iteration_on_cupy_names_the_device(cupy, tmp_path):
     assert "with CUDA kernels (ms) | kernels' gain" in table and "scipy" not in table
 
 
+@pytest.mark.gpu
+def test_gpu_checks_tomo_part_reconstructs_its_discs_on_both_sides(cupy):
+    """``gpu_checks OUT tomo``: the device's FBP and the host's gridrec both give the exact
+    disc sinograms' slices back (a wrong angle or axis convention reads ~100 % off) and agree."""
+    from benchmarks import gpu_checks
+    from pwf_dask.tomo import gridrec
+
+    if not gridrec.available():
+        pytest.skip("finufft is not installed")
+    host, device, agreement, *_ = gpu_checks.tomo_rows(cupy, rows=2, angles=121, width=128)
+    assert (host["where"], host["fbp"], device["where"], device["fbp"]) == ("host", "gridrec", "device", "backproject")
+    assert host["relative_rms_error_to_truth"] < 0.15 and device["relative_rms_error_to_truth"] < 0.15
+    assert agreement["device_backproject_vs_host_gridrec_relative_rms"] < 0.08
+
+
 def test_bench_accuracy_writes_one_row_per_run_with_errors_against_the_truth(tmp_path, capsys):
     """One cheap run (GF on the demo scene) through the whole accuracy bench; a preset without
     a scene exits with one line and writes nothing."""
