@@ -8,7 +8,7 @@ had about thirty of them (issue #31). The compiled loops accumulate sums in floa
 :func:`pwf_dask.backend.inner` does, so they agree with the NumPy expressions to float32
 rounding (``tests/test_kernels.py``). On a CUDA device the same loops are written as CuPy
 element-wise and reduction kernels (:data:`_CUDA_KERNELS`, compiled on first use; opt-in with
-``PWF_DASK_CUDA_KERNELS=1`` until a device measures them faster, :data:`cuda_kernels`): CuPy runs each NumPy
+``PWF_DASK_CUDA_KERNELS=1``, :data:`cuda_kernels`): CuPy runs each NumPy
 operation as its own kernel, so ``(f - y) * mask`` and its sum of squares cost four launches and
 four memory passes there too, and the launches, not the bandwidth, bound an iteration below
 about 1024^2 (issue #31: 1.8 ms at 512^2 against a 0.03 ms FFT on an H100). The CPU emulator
@@ -70,11 +70,12 @@ def _cpu(*arrays) -> bool:
 
 
 #: whether CuPy arrays go through the CUDA kernels below (``PWF_DASK_CUDA_KERNELS=1``). Off by
-#: default: on an H200 (session 48) every kernel gave the CuPy expressions' numbers
-#: (``tests/test_kernels.py`` passed on the device) and a full-frame retrieval the same phase to
-#: 3e-4 rad, but an iteration took 3.7 ms without them and 13.1 ms with them at 2160 x 2560 (1.0x
-#: at 512^2): each sum to a scalar ran on one block (:func:`_cuda_sum` now reduces rows first,
-#: not yet timed on a device). Off: the array-module form, as the CPU emulator runs it
+#: default until the device tests have run with them on: on an H200 every kernel gives the CuPy
+#: expressions' numbers (``tests/test_kernels.py`` passed on the device, sessions 48 and 61);
+#: session 48's sums to a scalar ran on one block (3.5x slower at 2160 x 2560), and with rows
+#: reduced first (:func:`_cuda_sum`) a full-frame iteration is 1.06-1.16x faster with them
+#: (session 61: 5.54 against 6.45 ms on the 1.5x field grid; 0.91-1.23x below 2048^2, where
+#: launches bound it). Off: the array-module form, as the CPU emulator runs it
 cuda_kernels = os.environ.get("PWF_DASK_CUDA_KERNELS", "0") == "1"
 _CUDA_COMPILED: dict = {}
 

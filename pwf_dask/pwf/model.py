@@ -118,6 +118,11 @@ def fast_len(n: int) -> int:
     the camera's 2160 x 2560 frame on 2240 x 2688 instead of 2200 x 2625 0.62x (0.90x on its
     field grid); pocketfft 0.70-1.04x. The set is closed under doubling, so an integer field
     grid is exactly s times a fast grid.
+
+    The longer sides also widen the margin, and the stop rule watches the whole grid: the
+    camera frame's margin of 80 x 128 px (40 x 65 under scipy's rule) settles late and holds
+    the paper preset's projection to 587 iterations against 284, for the same phase to 0.2 %
+    (session 61; docs/validation.md, "Why a grid's size moves a retrieval").
     """
     m = max(FAST_LEN_MULTIPLE, -(-int(n) // FAST_LEN_MULTIPLE) * FAST_LEN_MULTIPLE)
     while not _smooth(m):
