@@ -126,6 +126,7 @@ def retrieval_kwargs(args) -> dict:
         method=args.method,
         max_iter=args.max_iter,
         tol=args.tol,
+        stationary_terms=args.stationary_terms,
         gamma=args.gamma,
         alpha=args.alpha,
         phase_scale=args.phase_scale,
@@ -352,6 +353,13 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--max-iter", type=int, default=DEFAULTS.max_iter, help="pwf: iterations per projection at most")
     p.add_argument("--tol", type=float, default=DEFAULTS.tol, help="1 - field correlation of successive iterates")
+    p.add_argument(
+        "--stationary-terms",
+        default=DEFAULTS.stationary_terms,
+        choices=["j", "j-or-data"],
+        help="pwf: the stop's J test on J alone, or on J or its data term (large frames whose padding margin "
+        "settles late stop sooner: the camera's whole frame 300 iterations for 587; docs/validation.md)",
+    )
     p.add_argument(
         "--gamma",
         type=float,

@@ -68,3 +68,16 @@ def test_every_option_has_a_default_and_the_defaults_are_frozen():
     assert all(f.default is not dataclasses.MISSING for f in dataclasses.fields(RetrievalOptions))
     with pytest.raises(dataclasses.FrozenInstanceError):
         DEFAULTS.max_iter = 1
+
+
+def test_an_unknown_stationary_terms_is_refused_before_anything_is_written(tmp_path):
+    """``stationary_terms`` (the stop's J test on J, or on J or its data term) takes two
+    values; anything else is one line naming the option, in a scan before its store exists."""
+    from pwf_dask.pipeline.workflow import retrieve_scan
+
+    args = cli.build_parser().parse_args(["retrieve", "s.zarr", "r.zarr", "--stationary-terms", "j-or-data"])
+    assert cli.retrieval_kwargs(args)["stationary_terms"] == "j-or-data"
+    recon = tmp_path / "r.zarr"
+    with pytest.raises(ValueError, match="^stationary_terms must be one of j, j-or-data, got 'data'$"):
+        retrieve_scan(tmp_path / "no-scan-needed.zarr", recon, stationary_terms="data")
+    assert not recon.exists()

@@ -238,6 +238,43 @@ def test_one_quiet_window_after_a_fast_one_is_not_stationary():
     assert solver._stationary(paused[20:] + paused[-20:], 3e-5, 20)  # two quiet windows
 
 
+@pytest.mark.parametrize(
+    ("terms", "j_rate", "data_rate", "stops_at"),
+    [
+        ("j-or-data", 2e-5, 0.0, 15),
+        ("j-or-data", 0.0, -1e-5, 15),
+        ("j-or-data", 2e-5, 3e-5, None),
+        ("j", 2e-5, 0.0, None),
+        ("j", 0.0, -1e-5, 15),
+    ],
+)
+def test_the_stop_reads_j_or_its_data_term(terms, j_rate, data_rate, stops_at):
+    """With ``stationary_terms="j-or-data"`` the J test passes on J or on its data term
+    L / (4 N_t); by default on J alone. The regularizer's part going
+    on falling where no data are (the padding margin bridging the sample's phase across the
+    grid's edges) held the camera frame's run from 300 to 587 iterations (session 62), and a
+    misfit rising slightly as the regularizer falls had held a random scene from 217 to 520.
+    Here one of them moves (J falling 1e-4 of itself a window, or the data term rising 5e-5,
+    both above jtol) while the other is flat: the run stops after three windows; with both
+    moving, it does not; nor, by default, with J moving."""
+    rule = solver.StopRule(window=5, patience=3, min_iter=1, low_band_px=0.0, stationary_terms=terms)
+    psi0 = np.zeros((4, 4), np.complex128)
+    run = solver._Run(xp=np, fft=None, restart="gradient", rule=rule, rise_tol=1e-11, phi_prev=psi0)
+    x = np.ones((4, 4), np.complex128)  # the field: its correlation passes every iteration
+    stops = []
+    for k in range(1, 31):
+        j, data_j = 90.0 * (1.0 - j_rate * k), 59.16 * (1.0 - data_rate * k)
+        ev = operators.Evaluation(x=x, v=None, f=None, r=None, loss=4.0 * data_j)
+        run.accept(psi0 + 0.01j * k, j, None, ev, data_j)  # equal steps: _settled never passes
+        stops.append(run.converged(psi0 + 0.01j * k, k))
+    assert (stops.index(True) + 1 if any(stops) else None) == stops_at
+
+
+def test_an_unknown_stationary_terms_is_refused_in_one_line():
+    with pytest.raises(ValueError, match="stationary_terms must be one of j, j-or-data"):
+        solver.pwf(None, None, stationary_terms="data")
+
+
 def test_low_band_test_waits_for_a_creep_and_accepts_a_geometric_tail():
     """A low band creeping at a constant rate is not settled (J may no longer move while the
     phase of wide objects does); a geometric tail whose extrapolated rest is small is."""

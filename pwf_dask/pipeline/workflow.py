@@ -606,7 +606,14 @@ def _checked_scan_options(
     # only PWF iterates from a start, and a start the user chose is kept for every projection
     angle_chain = int(angle_chain) if method == "pwf" and "initial" not in options else 1
     alpha_c = parse_alpha(alpha)
-    check_solver_options(max_iter, tol, gamma, step, options.get("phase_scale", DEFAULTS.phase_scale))
+    check_solver_options(
+        max_iter,
+        tol,
+        gamma,
+        step,
+        options.get("phase_scale", DEFAULTS.phase_scale),
+        options.get("stationary_terms", DEFAULTS.stationary_terms),
+    )
     if "field_upsample" in options:
         options["field_upsample"] = check_field_upsample(options["field_upsample"])
     check_sample_field_grid(options.get("sample_field_grid", DEFAULTS.sample_field_grid))

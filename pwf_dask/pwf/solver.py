@@ -49,6 +49,7 @@ from pwf_dask.pwf.operators import (  # noqa: F401  (re-exported)
 from pwf_dask.pwf.stopping import (  # noqa: F401  (re-exported)
     LOW_BAND_PX,
     PAPER_TOL,
+    STATIONARY_TERMS,
     STOP_RULE,
     StopRule,
     _low_band_settled,
@@ -114,6 +115,7 @@ class _Run:
     steps: list[float] = field(default_factory=list)  # rms steps since the last momentum restart
     recent_steps: list = field(default_factory=list)  # the last two accepted psi_k - psi_{k-1}
     history: list[float] = field(default_factory=list)
+    data_history: list[float] = field(default_factory=list)  # J's data term, L / (4 N_t)
     low_band: list = field(default_factory=list)  # low-passed phase, one per window
     accepted: int = 0
     restarts: int = 0
@@ -171,9 +173,10 @@ class _Run:
         self.streak = 0
         return self.last
 
-    def accept(self, psi, j: float, d, ev) -> None:
+    def accept(self, psi, j: float, d, ev, data_j: float) -> None:
         """Record an accepted point: its step, the field correlation with the last one
-        (Algorithm S1, line 14), J for the momentum run and the stop, the low band."""
+        (Algorithm S1, line 14), J for the momentum run, J's data term ``data_j`` for the
+        stop, the low band."""
         if self.last is not None:
             dpsi, step_sq = kernels.step_and_norm(psi, self.last[0])
             self.recent_steps = [*self.recent_steps[-1:], dpsi]
@@ -194,6 +197,7 @@ class _Run:
             self.stalled += 1
         self.last = (psi, j, d, ev)
         self.history.append(j)
+        self.data_history.append(data_j)
         self.accepted += 1
         if self.low_pass is not None and self.accepted % self.rule.window == 0:
             band = _filter_real(self.xp.ascontiguousarray(psi.imag), self.low_pass, self.fft)
@@ -206,9 +210,10 @@ class _Run:
             return False
         if _settled(self.steps, psi, rule.rtol, rule.window, self.xp):
             return True
-        return _stationary(self.history, rule.jtol, rule.window) and (
-            self.low_pass is None or _low_band_settled(self.low_band, rule.rtol, self.xp)
+        stationary = _stationary(self.history, rule.jtol, rule.window) or (
+            rule.stationary_terms == "j-or-data" and _stationary(self.data_history, rule.jtol, rule.window)
         )
+        return stationary and (self.low_pass is None or _low_band_settled(self.low_band, rule.rtol, self.xp))
 
     def extrapolate(self, psi, d):
         """Algorithm S1, lines 12-13: phi = psi - eta d and the next point
@@ -243,6 +248,7 @@ def pwf(
     jtol: float = STOP_RULE.jtol,
     window: int = STOP_RULE.window,
     low_band_px: float = STOP_RULE.low_band_px,
+    stationary_terms: str = STOP_RULE.stationary_terms,
     psi0=None,
     step_search: bool = True,
     restart: str = "gradient",
@@ -261,9 +267,9 @@ def pwf(
     the stop also needs the extrapolated remaining change, step * rho / (1 - rho), with the
     linear rate rho from the mean rms steps of two successive ``window``-iteration windows of
     the current momentum run (:func:`_settled`), below ``rtol`` times rms(psi) (``rtol`` = 0
-    disables this test), or J stationary: its best value changed by less than ``jtol``
-    (relative) from one window to the next over each of the last two windows (:func:`_stationary`;
-    ``jtol`` = 0 disables it)
+    disables this test), or J stationary (``stationary_terms="j-or-data"``: J or its data term
+    L / (4 N_t)): its best value changed by less than ``jtol`` (relative) from one window to the
+    next over each of the last two windows (:func:`_stationary`; ``jtol`` = 0 disables it)
     while the phase's structure wider than ``low_band_px`` has settled as well
     (:func:`_low_band_settled`, ``low_band_px`` = 0 leaves it out).
 
@@ -298,6 +304,8 @@ def pwf(
     """
     if restart not in RESTARTS:
         raise ValueError(f"restart must be one of {', '.join(RESTARTS)}, got {restart!r}")
+    if stationary_terms not in STATIONARY_TERMS:
+        raise ValueError(f"stationary_terms must be one of {', '.join(STATIONARY_TERMS)}, got {stationary_terms!r}")
     xp = model.xp
     psi = xp.zeros(model.shape, dtype=model.cdtype) if psi0 is None else xp.asarray(psi0, dtype=model.cdtype)
     rule = StopRule(
@@ -309,6 +317,7 @@ def pwf(
         jtol=jtol,
         window=window,
         low_band_px=low_band_px,
+        stationary_terms=stationary_terms,
     )
     # J is summed in float64 from residuals rounded to the working precision: a rise
     # smaller than that rounding is noise, not a failed step
@@ -345,7 +354,7 @@ def pwf(
         else:
             if run.last is None and step_search:
                 run.eta = step / largest_curvature(psi, y, model, direction=d)
-            run.accept(psi, j, d, ev)
+            run.accept(psi, j, d, ev, ev.loss / (4.0 * model.norm))
             if callback is not None:
                 callback(k, j, psi)
             if run.converged(psi, k):

@@ -31,6 +31,8 @@ def _settled(steps: list[float], psi, rtol: float, window: int, xp) -> bool:
     if not s2 < s1:
         return False
     rho = (s2 / s1) ** (1.0 / window)
+    if not rho < 1.0:  # steps equal to rounding: no geometric tail to extrapolate
+        return False
     remaining = s2 * rho / (1.0 - rho)
     scale = float(xp.sqrt(xp.mean(psi.real**2 + psi.imag**2)))
     return remaining < rtol * max(scale, 1e-12)
@@ -57,12 +59,27 @@ def _stationary(history: list[float], jtol: float, window: int) -> bool:
     to 8.1e-5 per window; the single test stopped at that pause (220 iterations, phase error
     0.078 against 0.067 at 520). With two steps it stops at 520, while full-width warm starts
     take 0-20 iterations more (session 47, docs/methods.md).
+
+    With ``StopRule.stationary_terms="j-or-data"`` :func:`~pwf_dask.pwf.solver.pwf` asks it of
+    J and of J's *data term* L / (4 N_t), and either will do: the regularizer's part can go on
+    falling where the data say nothing, the padding margin, whose phase bridges the sample
+    across the grid's periodic edges. On the camera's 2160 x 2560 frame the data term was flat
+    from iteration 140 (59.16 to 4 digits) while the regularizer's fell 30.97 -> 30.43 to
+    iteration 587, where the test on J let the run stop; the data term's test stops it at 300,
+    nearer the true phase (5.51 rad rms against 5.59; session 62, docs/validation.md). Not the
+    default: on small frames from zero it stops much sooner too (the 256^2 P3000 scene 174
+    iterations for 360), where warm starts then gain nothing (session 62). The data term
+    alone is no rule either: where the regularizer's fall is bought with a slight rise of the
+    misfit, J settles first (a random scene: J's test at 217 iterations, the data term's at 520).
     """
     if jtol <= 0 or len(history) < 3 * window:
         return False
     bests = [min(history[-k * window : len(history) - (k - 1) * window]) for k in (3, 2, 1)]
     return all(abs(a - b) < jtol * abs(a) for a, b in zip(bests, bests[1:]))
 
+
+#: What :func:`_stationary` is asked of (:class:`StopRule`): J alone, or J or its data term
+STATIONARY_TERMS = ("j", "j-or-data")
 
 #: Scales the low-band stop test watches (:func:`_low_band_settled`): phase structure wider
 #: than this many pixels, the wide smooth objects whose phase the data fix only weakly
@@ -111,8 +128,9 @@ class StopRule:
     ``tol``: the paper's field-correlation test (Algorithm S1, line 14), met on ``patience``
     consecutive accepted iterations and not before ``min_iter``; ``rtol``: the extrapolated
     remaining change (:func:`_settled`, over ``window``-iteration windows); ``jtol``: J
-    stationary (:func:`_stationary`) with the band wider than ``low_band_px`` settled
-    (:func:`_low_band_settled`); ``max_iter``: the cap. See :func:`~pwf_dask.pwf.solver.pwf`.
+    stationary (:func:`_stationary`; ``stationary_terms="j-or-data"``: J or its data term) with
+    the band wider than ``low_band_px`` settled (:func:`_low_band_settled`); ``max_iter``: the cap.
+    See :func:`~pwf_dask.pwf.solver.pwf`.
 
     ``jtol`` 3e-5 (1e-5 until session 46): warm-started full-width projections stop at 187-200
     iterations instead of 340-360 with the same error against the true phase (4.07 / 4.12 rad
@@ -130,6 +148,7 @@ class StopRule:
     jtol: float = 3e-5
     window: int = 20
     low_band_px: float = LOW_BAND_PX
+    stationary_terms: str = "j"
 
 
 #: the stop rule every caller defaults to
