@@ -344,6 +344,7 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     from pwf_dask.calibration.diffuser import DIFFUSER_MODEL_CHOICES
     from pwf_dask.options import DEFAULTS
     from pwf_dask.pipeline.workflow import DEFAULT_ANGLE_CHAIN
+    from pwf_dask.pwf.stopping import STATIONARY_TERMS
 
     p.add_argument(
         "--method",
@@ -356,7 +357,7 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--stationary-terms",
         default=DEFAULTS.stationary_terms,
-        choices=["j", "j-or-data"],
+        choices=STATIONARY_TERMS,
         help="pwf: the stop's J test on J alone, or on J or its data term (large frames whose padding margin "
         "settles late stop sooner: the camera's whole frame 300 iterations for 587; docs/validation.md)",
     )
