@@ -55,6 +55,7 @@ from pwf_dask.pwf.stopping import (  # noqa: F401  (re-exported)
     _low_band_settled,
     _settled,
     _stationary,
+    check_stationary_terms,
     low_band_filter,
 )
 
@@ -304,8 +305,7 @@ def pwf(
     """
     if restart not in RESTARTS:
         raise ValueError(f"restart must be one of {', '.join(RESTARTS)}, got {restart!r}")
-    if stationary_terms not in STATIONARY_TERMS:
-        raise ValueError(f"stationary_terms must be one of {', '.join(STATIONARY_TERMS)}, got {stationary_terms!r}")
+    check_stationary_terms(stationary_terms)
     xp = model.xp
     psi = xp.zeros(model.shape, dtype=model.cdtype) if psi0 is None else xp.asarray(psi0, dtype=model.cdtype)
     rule = StopRule(

@@ -81,6 +81,13 @@ def _stationary(history: list[float], jtol: float, window: int) -> bool:
 #: What :func:`_stationary` is asked of (:class:`StopRule`): J alone, or J or its data term
 STATIONARY_TERMS = ("j", "j-or-data")
 
+
+def check_stationary_terms(value) -> None:
+    """Refuse a ``stationary_terms`` outside :data:`STATIONARY_TERMS` in one line."""
+    if value not in STATIONARY_TERMS:
+        raise ValueError(f"stationary_terms must be one of {', '.join(STATIONARY_TERMS)}, got {value!r}")
+
+
 #: Scales the low-band stop test watches (:func:`_low_band_settled`): phase structure wider
 #: than this many pixels, the wide smooth objects whose phase the data fix only weakly
 LOW_BAND_PX = 64.0
