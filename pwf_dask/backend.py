@@ -9,6 +9,7 @@ GPU, so that a Dask worker pinned to N cores never spawns more FFT threads than 
 from __future__ import annotations
 
 import contextlib
+import numbers
 import os
 import threading
 from dataclasses import dataclass
@@ -390,7 +391,7 @@ if hasattr(os, "register_at_fork"):
 _INNER_BLOCK = 1 << 16
 
 
-def inner(a, b) -> complex:
+def inner(a, b, host: bool = True) -> complex:
     """<a, b> = sum conj(a) b, accurate to float64 rounding of float32 partial sums.
 
     NumPy's vdot on complex64 hands the whole array to a BLAS dot that accumulates in single
@@ -398,14 +399,35 @@ def inner(a, b) -> complex:
     more than the paper's stop tolerance 1 - 10^-0.00001 = 2.3e-5, so a field correlation
     built from it never passes on full detector frames. Partial dots over 65536 elements
     summed in float64 keep the error near 1e-7 at any size, at the cost of one pass. CuPy's
-    reductions are tree-shaped and accurate as they are.
+    reductions are tree-shaped and accurate as they are. ``host=False`` leaves CuPy's sum on
+    the device, a 0-d array for :func:`host_numbers` to fetch with others (NumPy's is a number).
     """
     xp = get_array_module(a, b)
     if xp is not np:
-        return complex(xp.vdot(a, b))
+        total = xp.vdot(a, b)
+        return complex(total) if host else total
     fa, fb = a.reshape(-1), b.reshape(-1)
     n = fa.size
     total = 0j
     for i in range(0, n, _INNER_BLOCK):
         total += complex(np.vdot(fa[i : i + _INNER_BLOCK], fb[i : i + _INNER_BLOCK]))
     return total
+
+
+def host_numbers(values: list) -> list:
+    """``values`` (Python numbers, or 0-d device arrays left there by ``host=False``) as Python
+    numbers, the device's in one transfer: on a GPU each fetch of a scalar is a synchronisation
+    that drains the queue of launched kernels and leaves the device idle while the host launches
+    the next ones, so an iteration fetches all its sums at once (:func:`pwf_dask.pwf.solver.pwf`).
+    Float sums stay floats and complex ones complex, exactly (widened to complex128 for the
+    transfer)."""
+    on_device = [i for i, v in enumerate(values) if not isinstance(v, numbers.Number)]
+    if not on_device:
+        return list(values)
+    xp = get_array_module(values[on_device[0]])
+    fetched = xp.concatenate([values[i].reshape(1).astype(xp.complex128) for i in on_device]).get()
+    out = list(values)
+    for i, number in zip(on_device, fetched):
+        complex_sum = values[i].dtype.kind == "c"
+        out[i] = complex(number) if complex_sum else float(number.real)
+    return out

@@ -32,6 +32,18 @@ import scipy.fft
 
 _MIXING = "Unsupported type <class 'numpy.ndarray'>"
 
+#: device-to-host transfers so far: every ``get()``, ``item()``, ``tolist()``, ``float()``,
+#: ``complex()``, ``int()``, ``bool()`` or format of a device array (a CUDA synchronisation
+#: and a copy each on a GPU); tests of the solver's round trips per iteration read it
+transfers = 0
+
+
+def _fetched(a: np.ndarray) -> np.ndarray:
+    global transfers
+    transfers += 1
+    return a
+
+
 #: NumPy functions CuPy provides under the same name (those the package may reach for)
 FUNCTIONS = (
     "abs absolute all allclose amax amin angle any arange arccos arcsin arctan arctan2 argmax argmin "
@@ -108,31 +120,31 @@ class ndarray:  # noqa: N801 (CuPy's name)
 
     # conversion
     def get(self):
-        return self._a.copy()
+        return _fetched(self._a).copy()
 
     def item(self):
-        return self._a.item()
+        return _fetched(self._a).item()
 
     def tolist(self):
-        return self._a.tolist()
+        return _fetched(self._a).tolist()
 
     def __float__(self):
-        return float(self._a)
+        return float(_fetched(self._a))
 
     def __int__(self):
-        return int(self._a)
+        return int(_fetched(self._a))
 
     def __complex__(self):
-        return complex(self._a)
+        return complex(_fetched(self._a))
 
     def __bool__(self):
-        return bool(self._a)
+        return bool(_fetched(self._a))
 
     def __index__(self):
-        return operator.index(self._a.item())
+        return operator.index(_fetched(self._a).item())
 
     def __format__(self, spec):
-        return format(self._a.item() if self._a.ndim == 0 else self._a, spec)
+        return format(_fetched(self._a).item() if self._a.ndim == 0 else self._a, spec)
 
     def __repr__(self):
         return f"emulated_cupy.{self._a!r}"

@@ -128,3 +128,23 @@ def test_each_thread_keeps_its_own_stream(cupy):
         assert isinstance(backend.task_stream(cupy), contextlib.nullcontext)
     finally:
         backend.task_streams = True
+
+
+@pytest.mark.gpu
+def test_host_numbers_fetches_device_sums_at_once_and_exactly(cupy):
+    """Issue #31: an iteration's sums left on the device come back in one transfer, each the
+    number a fetch of its own gives (floats stay floats, complex sums complex); host numbers
+    pass through."""
+    import emulated_cupy
+
+    a = cupy.asarray(np.array([1.1, 2.3, -0.7], np.float32))
+    c = cupy.asarray(np.array([1 + 2j, 3 - 1j], np.complex64))
+    values = [0.5, cupy.sum(a), cupy.vdot(c, c * 1.3j), 2j, cupy.sum(a, dtype=cupy.float64), cupy.vdot(c, c).real]
+    before = emulated_cupy.transfers
+    numbers = backend.host_numbers(values)
+    if cupy.ndarray is emulated_cupy.ndarray:
+        assert emulated_cupy.transfers - before == 1
+    one_by_one = [0.5, float(values[1]), complex(values[2]), 2j, float(values[4]), float(values[5])]
+    assert numbers == one_by_one
+    assert [type(v) for v in numbers] == [float, float, complex, complex, float, float]
+    assert backend.host_numbers([1.0, 3j]) == [1.0, 3j]

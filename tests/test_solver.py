@@ -21,6 +21,7 @@ def make_model(
     pixel_integration=False,
     field_upsample=1,
     sample_field_grid="field",
+    xp=np,
 ):
     n = 48
     p = 0.65e-6
@@ -30,7 +31,7 @@ def make_model(
     t = optics.angular_spectrum_propagate(t, p, wl, 0.0)
     cx = 0.0 if coherent else 2.0e-6
     model = solver.build_model(
-        t,
+        xp.asarray(t),
         frame_shape=(n, n),
         pixel_size_m=p,
         wavelength=wl,
@@ -45,7 +46,7 @@ def make_model(
         field_upsample=field_upsample,
         sample_field_grid=sample_field_grid,
     )
-    y = rng.random(shape) + 0.5
+    y = xp.asarray(rng.random(shape) + 0.5)
     if model.mask is not None:
         y = y * model.mask
     return model, y
@@ -265,8 +266,9 @@ def test_the_stop_reads_j_or_its_data_term(terms, j_rate, data_rate, stops_at):
     for k in range(1, 31):
         j, data_j = 90.0 * (1.0 - j_rate * k), 59.16 * (1.0 - data_rate * k)
         ev = operators.Evaluation(x=x, v=None, f=None, r=None, loss=4.0 * data_j)
-        run.accept(psi0 + 0.01j * k, j, None, ev, data_j)  # equal steps: _settled never passes
-        stops.append(run.converged(psi0 + 0.01j * k, k))
+        psi = psi0 + 0.01j * k  # equal steps: _settled never passes
+        run.accept(psi, j, None, ev, data_j, run.trial(psi, psi0, ev, k))
+        stops.append(run.converged(psi, k))
     assert (stops.index(True) + 1 if any(stops) else None) == stops_at
 
 
@@ -530,3 +532,32 @@ def test_an_overflowing_trial_step_is_rejected_and_not_reported_as_the_stop(rng)
     sol = solver.pwf(y.astype(np.float32), model, step=1e6, step_search=False, max_iter=40, tol=0)
     assert sol.backtracks > 0 and np.all(np.isfinite(sol.psi))
     assert sol.stop_reason == "max_iter" and sol.iterations == 40
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("kw", [dict(l1=0.0), dict(field_upsample=1.5, pad=4)])
+def test_an_iteration_fetches_its_sums_from_the_device_in_one_transfer(rng, kw):
+    """Issue #31: on a GPU each scalar fetched is a synchronisation, which leaves the device idle
+    while the host launches the next kernels. An accepted iteration fetches J's sums, its step,
+    the field correlation, the restart's test and the step test's scale at once (seven fetches
+    before session 63); only a momentum restart's cosine and a new low-band snapshot's test
+    take one more. Counted on the CuPy emulator (``emulated_cupy.transfers``)."""
+    import emulated_cupy
+    from emulated_cupy import installed
+
+    with installed() as cp:
+        model, y = make_model(rng, precision="single", xp=cp, **kw)
+        seen = []  # (iteration, transfers so far) at each accepted iteration
+
+        def count(k, j, psi):
+            seen.append((k, emulated_cupy.transfers))
+
+        result = solver.pwf(y, model, max_iter=2000, min_iter=50, callback=count)
+    assert result.converged and isinstance(result.psi, cp.ndarray)
+    # beyond one a iteration (rejected ones too), from the second on (the first estimates the
+    # curvature)
+    extra = [(t1 - t0) - (k1 - k0) for (k0, t0), (k1, t1) in zip(seen[1:], seen[2:])]
+    assert len(extra) > 200 and min(extra) == 0
+    snapshots = result.iterations // solver.STOP_RULE.window
+    assert sum(extra) <= result.restarts + snapshots, (sum(extra), result.restarts, snapshots)
+    assert extra.count(0) > 0.9 * len(extra)

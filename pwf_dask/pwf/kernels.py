@@ -103,16 +103,15 @@ def _cuda_kernel(xp, name: str):
     return _CUDA_COMPILED[name]
 
 
-def _cuda_sum(xp, name: str, *arrays) -> float:
+def _cuda_sum(xp, name: str, *arrays, host: bool = True) -> float:
     """The reduction kernel ``name`` over all of ``arrays``, as a float. CuPy launches one block
     per output element of a reduction kernel: a sum to one scalar ran on one block of one
     multiprocessor, 1-2 ms a pass at 2160 x 2560 (an H200, session 48: the kernels made an
     iteration 3.7 -> 13.1 ms). Each row is reduced by a block of its own, and the row totals
-    by CuPy's sum."""
+    by CuPy's sum. ``host=False``: the sum stays on the device, a 0-d array."""
     kernel = _cuda_kernel(xp, name)
-    if arrays[0].ndim < 2:
-        return float(kernel(*arrays))
-    return float(kernel(*arrays, axis=-1).sum())
+    total = kernel(*arrays) if arrays[0].ndim < 2 else kernel(*arrays, axis=-1).sum()
+    return float(total) if host else total
 
 
 # --- the compiled loops: flat, contiguous operands --------------------------------------------
@@ -278,6 +277,11 @@ _LOOPS = {
 _FASTMATH = {"polar": {"contract"}}
 
 
+def _number(total, host: bool):
+    """A 0-d sum as a float, or as it is (on its device) where ``host`` is False."""
+    return float(total) if host else total
+
+
 def _flat(*arrays):
     return [a.reshape(-1) for a in arrays]
 
@@ -370,9 +374,11 @@ def intensity(v):
     return out
 
 
-def residual_and_loss(f, y, mask=None):
+def residual_and_loss(f, y, mask=None, host: bool = True):
     """e = (f - y) M (M: 1 on measured pixels, 0 elsewhere; None: all measured) and
-    L = sum e^2, summed in float64."""
+    L = sum e^2, summed in float64. This and the other sums below take ``host=False`` to leave
+    a device's sum there as a 0-d array (:func:`pwf_dask.backend.host_numbers` fetches an
+    iteration's sums at once); on the CPU they are numbers either way."""
     if _cpu(f, y) and (mask is None or _cpu(mask)) and f.dtype == y.dtype:
         out = np.empty(f.shape, dtype=f.dtype)
         if mask is None:
@@ -383,12 +389,12 @@ def residual_and_loss(f, y, mask=None):
     xp = _cuda(f, y)
     if xp is not None and f.dtype == y.dtype:
         r = f - y if mask is None else _cuda_kernel(xp, "residual_masked")(f, y, mask)
-        return r, _cuda_sum(xp, "sum_sq", r)
+        return r, _cuda_sum(xp, "sum_sq", r, host=host)
     xp = get_array_module(f)
     r = f - y
     if mask is not None:
         r *= mask
-    return r, float(xp.sum(r * r, dtype=np.float64))
+    return r, _number(xp.sum(r * r, dtype=np.float64), host)
 
 
 def times_conj(c, x):
@@ -405,20 +411,20 @@ def times_conj(c, x):
     return c
 
 
-def weighted_power(a, w) -> float:
+def weighted_power(a, w, host: bool = True) -> float:
     """sum w |a|^2 (w real, a's shape), in float64."""
     if _cpu(a, w) and a.shape == w.shape:
         return float(_jit("weighted_power")(*_flat(a, w)))
     xp = _cuda(a, w)
     if xp is not None and a.shape == w.shape:
-        return _cuda_sum(xp, "weighted_power", a, w)
+        return _cuda_sum(xp, "weighted_power", a, w, host=host)
     xp = get_array_module(a)
     power = xp.square(a.real) + xp.square(a.imag)
     power *= w
-    return float(xp.sum(power, dtype=np.float64))
+    return _number(xp.sum(power, dtype=np.float64), host)
 
 
-def step_and_norm(psi, last):
+def step_and_norm(psi, last, host: bool = True):
     """(psi - last, |psi - last|^2)."""
     if _cpu(psi, last) and psi.dtype == last.dtype:
         out = np.empty_like(psi)
@@ -426,20 +432,20 @@ def step_and_norm(psi, last):
     from pwf_dask.backend import inner
 
     s = psi - last
-    return s, inner(s, s).real
+    return s, inner(s, s, host).real
 
 
-def field_correlation(x, prev) -> tuple[float, complex]:
+def field_correlation(x, prev, host: bool = True) -> tuple[float, complex]:
     """(|x|^2, <prev, x> = sum conj(prev) x), in float64: the stop rule's field correlation."""
     if _cpu(x, prev) and x.dtype == prev.dtype:
         norm, re, im = _jit("correlation")(*_flat(x, prev))
         return float(norm), complex(re, im)
     from pwf_dask.backend import inner
 
-    return inner(x, x).real, inner(prev, x)
+    return inner(x, x, host).real, inner(prev, x, host)
 
 
-def descent_point(psi, d, phi_prev, eta: float):
+def descent_point(psi, d, phi_prev, eta: float, host: bool = True):
     """(phi = psi - eta d, Re<d, phi - phi_prev>)."""
     if _cpu(psi, d, phi_prev) and psi.dtype == d.dtype == phi_prev.dtype:
         out = np.empty_like(psi)
@@ -448,12 +454,12 @@ def descent_point(psi, d, phi_prev, eta: float):
     xp = _cuda(psi, d, phi_prev)
     if xp is not None and psi.dtype == d.dtype == phi_prev.dtype:
         phi = _cuda_kernel(xp, "descent")(psi, d, psi.dtype.type(eta))
-        return phi, _cuda_sum(xp, "uphill", d, phi, phi_prev)
+        return phi, _cuda_sum(xp, "uphill", d, phi, phi_prev, host=host)
     from pwf_dask.backend import inner
 
     phi = d * (-eta)
     phi += psi
-    return phi, inner(d, phi - phi_prev).real
+    return phi, inner(d, phi - phi_prev, host).real
 
 
 def momentum_point(phi, phi_prev, beta: float):

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from pwf_dask.backend import FFT, inner
+from pwf_dask.backend import FFT, host_numbers, inner
 from pwf_dask.physics import optics
 from pwf_dask.pwf import kernels
 from pwf_dask.pwf.model import (
@@ -137,9 +137,10 @@ def physical_model(psi, model: PWFModel) -> Evaluation:
     return Evaluation(x=x, v=v, f=f.astype(model.rdtype, copy=False), r=None, loss=math.nan)
 
 
-def residual(ev: Evaluation, y, model: PWFModel) -> Evaluation:
-    """e = f - y on measured pixels (the paper's e_r = y_r - f_r with the sign folded in)."""
-    ev.r, ev.loss = kernels.residual_and_loss(ev.f, y, model.mask)
+def residual(ev: Evaluation, y, model: PWFModel, host: bool = True) -> Evaluation:
+    """e = f - y on measured pixels (the paper's e_r = y_r - f_r with the sign folded in);
+    ``host=False`` leaves the loss on psi's device (``kernels.residual_and_loss``)."""
+    ev.r, ev.loss = kernels.residual_and_loss(ev.f, y, model.mask, host)
     return ev
 
 
@@ -196,17 +197,18 @@ def _propagate_and_restrict(c, kernel_conj, coarse_shape, fft: FFT):
 
 
 def _regularizer(psi, model: PWFModel):
-    """The regularizer's value in J and the spectra of its direction terms.
+    """The regularizer's Parseval sums and the spectra of its direction terms.
 
-    Returns (value, re_term, im_term): value by Parseval on rfft spectra (module docstring),
-    re_term = Re(alpha) Gamma^2 rfft(Re psi) and im_term = Im(alpha) Gamma^2 rfft(Im psi), or
-    None where that part of alpha is 0 (no FFT is spent on it).
+    Returns (powers, re_term, im_term): powers the sums w |rfft(part)|^2 of psi's parts that
+    the regularizer weighs (on psi's device; :func:`_regularizer_sum` makes them J's term, by
+    Parseval on rfft spectra: module docstring), re_term = Re(alpha) Gamma^2 rfft(Re psi) and
+    im_term = Im(alpha) Gamma^2 rfft(Im psi), or None where that part of alpha is 0 (no FFT is
+    spent on it).
     """
     if model.reg_window is None:
-        return 0.0, None, None
+        return [], None, None
     xp, fft = model.xp, model.fft
-    n = model.shape[0] * model.shape[1]
-    value = 0.0
+    powers = []
     terms = []
     for part, term in zip((psi.real, psi.imag), model.reg_terms):
         if term is None:
@@ -214,29 +216,55 @@ def _regularizer(psi, model: PWFModel):
             continue
         value_weights, direction_filter = term
         sp = fft.rfft2(xp.ascontiguousarray(part))
-        value += 0.5 * kernels.weighted_power(sp, value_weights) / n
+        powers.append(kernels.weighted_power(sp, value_weights, host=False))
         sp *= direction_filter
         terms.append(sp)
-    return value, terms[0], terms[1]
+    return powers, terms[0], terms[1]
+
+
+def _regularizer_sum(powers: list[float], model: PWFModel) -> float:
+    """The regularizer's part of J from :func:`_regularizer`'s sums, fetched to the host."""
+    n = model.shape[0] * model.shape[1]
+    value = 0.0
+    for power in powers:
+        value += 0.5 * power / n
+    return value
 
 
 def regularizer_value(psi, model: PWFModel) -> float:
     """The regularizer's part of J (see the module docstring)."""
-    return _regularizer(psi, model)[0]
+    return _regularizer_sum(host_numbers(_regularizer(psi, model)[0]), model)
 
 
 def objective_and_direction(psi, y, model: PWFModel):
-    """J(psi) and the update direction M grad J = Precond(g) + Reg(psi) of Algorithm S1, line 11.
+    """J(psi) and the update direction M grad J = Precond(g) + Reg(psi) of Algorithm S1, line 11
+    (:func:`objective_sums_and_direction`, its sums fetched)."""
+    sums, g, ev = objective_sums_and_direction(psi, y, model)
+    sums = host_numbers(sums)
+    ev.loss = sums[0]
+    return objective_of_sums(sums, model), g, ev
 
-    ``Preconditioner`` filters Im(g) by P^-1; ``Regularizer`` adds Re(alpha) Gamma^2 Re(psi)
-    + i Im(alpha) Gamma^2 Im(psi). The phase terms are summed in Fourier space, so one inverse
-    FFT serves both.
+
+def objective_of_sums(sums: list[float], model: PWFModel) -> float:
+    """J from the sums of :func:`objective_sums_and_direction` fetched to the host: the data
+    term L / (4 N_t) plus the regularizer's."""
+    loss, *powers = sums
+    return loss / (4.0 * model.norm) + _regularizer_sum(powers, model)
+
+
+def objective_sums_and_direction(psi, y, model: PWFModel):
+    """J's sums and the update direction M grad J = Precond(g) + Reg(psi) of Algorithm S1, line 11.
+
+    Returns (sums, g, ev): sums = [L, the regularizer's Parseval sums], left on psi's device
+    (:func:`objective_of_sums` makes J of them once fetched), g the direction and ev the
+    model's fields. ``Preconditioner`` filters Im(g) by P^-1; ``Regularizer`` adds
+    Re(alpha) Gamma^2 Re(psi) + i Im(alpha) Gamma^2 Im(psi). The phase terms are summed in
+    Fourier space, so one inverse FFT serves both.
     """
     xp, fft = model.xp, model.fft
-    ev = residual(physical_model(psi, model), y, model)
+    ev = residual(physical_model(psi, model), y, model, host=False)
     g = wirtinger_derivative(ev, model)
-    reg_value, re_term, im_term = _regularizer(psi, model)
-    j = ev.loss / (4.0 * model.norm) + reg_value
+    powers, re_term, im_term = _regularizer(psi, model)
     # the direction is written in place into g: Re(g) plus the regularizer, then the
     # preconditioned Im(g) plus the phase regularizer (summed in Fourier space)
     if re_term is not None:
@@ -251,7 +279,7 @@ def objective_and_direction(psi, y, model: PWFModel):
         g.imag += fft.irfft2(im_term, s=model.shape, overwrite=True)
     if model.phase_scale != 1.0:
         g.imag *= model.phase_scale
-    return j, g, ev
+    return [ev.loss, *powers], g, ev
 
 
 def objective(psi, y, model: PWFModel) -> float:

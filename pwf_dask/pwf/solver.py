@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from pwf_dask.backend import inner
+from pwf_dask.backend import host_numbers, inner
 from pwf_dask.pwf import kernels
 from pwf_dask.pwf.model import (  # noqa: F401  (re-exported)
     DEFAULT_ALPHA,
@@ -41,6 +41,8 @@ from pwf_dask.pwf.operators import (  # noqa: F401  (re-exported)
     metric_norm,
     objective,
     objective_and_direction,
+    objective_of_sums,
+    objective_sums_and_direction,
     physical_model,
     regularizer_value,
     residual,
@@ -57,6 +59,7 @@ from pwf_dask.pwf.stopping import (  # noqa: F401  (re-exported)
     _stationary,
     check_stationary_terms,
     low_band_filter,
+    rms,
 )
 
 #: Im(alpha) tried by :func:`discrepancy_alpha` (Re(alpha) stays the paper's 0.1: raising it
@@ -97,6 +100,35 @@ DEFAULT_GAMMA = 1.0
 
 
 @dataclass
+class _Trial:
+    """What accepting the iterate psi takes beyond J: its step, the field correlation and the
+    descent point of Algorithm S1, lines 12-14. It is computed before J decides whether psi is
+    accepted, so that one transfer fetches its sums with J's (:func:`pwf`): on a GPU each fetch
+    of a sum is a synchronisation, and an iteration fetched seven (session 63). Where psi is
+    rejected (rarely) the passes are wasted."""
+
+    eta: float  # the eta ``phi`` was taken with
+    phi: Any  # psi - eta d
+    uphill: Any  # Re<d, phi - phi_prev>, the gradient restart's test
+    x_sq: Any  # |x|^2
+    dpsi: Any = None  # psi - psi_{k-1} (None at the first accepted point)
+    step_sq: Any = None  # |psi - psi_{k-1}|^2
+    overlap: Any = None  # <x_{k-1}, x>
+    scale: Any = None  # rms(psi) for the step test, fetched ahead on a device only
+
+    SUMS = ("uphill", "x_sq", "step_sq", "overlap", "scale")
+
+    def sums(self) -> list:
+        return [getattr(self, name) for name in self.SUMS if getattr(self, name) is not None]
+
+    def take(self, numbers: list) -> None:
+        """Replace the sums by their fetched values (in :meth:`sums`' order)."""
+        present = [name for name in self.SUMS if getattr(self, name) is not None]
+        for name, number in zip(present, numbers, strict=True):
+            setattr(self, name, number)
+
+
+@dataclass
 class _Run:
     """The state of one run of Algorithm S1 (:func:`pwf`) between iterations: Nesterov's
     momentum, the last accepted point, the step eta and what the stop rule watches."""
@@ -126,6 +158,8 @@ class _Run:
     run_best: float = math.inf  # J's lowest value in the momentum run
     stalled: int = 0  # accepted iterations since run_best last fell
     halved: bool = False  # eta was halved at the last momentum restart
+    scale: float | None = None  # rms of the last accepted psi where fetched with its trial
+    low_band_still: bool | None = None  # _low_band_settled of the snapshots (None: not yet asked)
 
     @property
     def stall_limit(self) -> int:
@@ -154,7 +188,13 @@ class _Run:
             self.halved = False
             return
         before, now = self.recent_steps
-        cosine = inner(before, now).real / math.sqrt(inner(before, before).real * inner(now, now).real or 1.0)
+        sums = [
+            inner(before, now, host=False).real,
+            inner(before, before, host=False).real,
+            inner(now, now, host=False).real,
+        ]
+        overlap, before_sq, now_sq = host_numbers(sums)
+        cosine = overlap / math.sqrt(before_sq * now_sq or 1.0)
         if cosine < STIFF_COSINE:
             self.eta *= 0.5
             self.backtracks += 1
@@ -174,21 +214,32 @@ class _Run:
         self.streak = 0
         return self.last
 
-    def accept(self, psi, j: float, d, ev, data_j: float) -> None:
-        """Record an accepted point: its step, the field correlation with the last one
-        (Algorithm S1, line 14), J for the momentum run, J's data term ``data_j`` for the
-        stop, the low band."""
+    def trial(self, psi, d, ev, k: int) -> _Trial:
+        """The passes and sums that accepting ``psi`` (iteration ``k``) would take, the sums
+        left on the device (see :class:`_Trial`)."""
+        phi, uphill = kernels.descent_point(psi, d, self.phi_prev, self.eta, host=False)
+        if self.last is None:
+            return _Trial(self.eta, phi, uphill, x_sq=inner(ev.x, ev.x, host=False).real)
+        dpsi, step_sq = kernels.step_and_norm(psi, self.last[0], host=False)
+        x_sq, overlap = kernels.field_correlation(ev.x, self.last[3].x, host=False)
+        rule = self.rule
+        # on the CPU the step test's scale costs a pass, not a round trip: taken when asked
+        ahead = self.xp is not np and rule.tol > 0 and rule.rtol > 0 and k >= rule.min_iter
+        scale = rms(psi, self.xp) if ahead else None
+        return _Trial(self.eta, phi, uphill, x_sq, dpsi, step_sq, overlap, scale)
+
+    def accept(self, psi, j: float, d, ev, data_j: float, trial: _Trial) -> None:
+        """Record an accepted point from its fetched ``trial``: its step, the field correlation
+        with the last one (Algorithm S1, line 14), J for the momentum run, J's data term
+        ``data_j`` for the stop, the low band."""
+        x_norm = math.sqrt(trial.x_sq)
         if self.last is not None:
-            dpsi, step_sq = kernels.step_and_norm(psi, self.last[0])
-            self.recent_steps = [*self.recent_steps[-1:], dpsi]
-            self.steps.append(math.sqrt(step_sq / dpsi.size))
-            x_sq, overlap = kernels.field_correlation(ev.x, self.last[3].x)
-            x_norm = math.sqrt(x_sq)
-            corr = abs(overlap) / (x_norm * self.last_x_norm)
+            self.recent_steps = [*self.recent_steps[-1:], trial.dpsi]
+            self.steps.append(math.sqrt(trial.step_sq / trial.dpsi.size))
+            corr = abs(trial.overlap) / (x_norm * self.last_x_norm)
             self.streak = self.streak + 1 if 1.0 - corr < self.rule.tol else 0
-            self.last_x_norm = x_norm
-        else:
-            self.last_x_norm = math.sqrt(inner(ev.x, ev.x).real)
+        self.last_x_norm = x_norm
+        self.scale = trial.scale
         if not self.momentum_used:
             self.anchor_j = j
             self.run_best, self.stalled = j, 0
@@ -203,26 +254,35 @@ class _Run:
         if self.low_pass is not None and self.accepted % self.rule.window == 0:
             band = _filter_real(self.xp.ascontiguousarray(psi.imag), self.low_pass, self.fft)
             self.low_band = [*self.low_band[-2:], band]
+            self.low_band_still = None
 
     def converged(self, psi, k: int) -> bool:
         """The stop rule (:class:`StopRule`, see :func:`pwf`) after the accepted iterate ``k``."""
         rule = self.rule
         if not (rule.tol > 0 and self.streak >= rule.patience and k >= rule.min_iter):
             return False
-        if _settled(self.steps, psi, rule.rtol, rule.window, self.xp):
+        if _settled(self.steps, psi, rule.rtol, rule.window, self.xp, self.scale):
             return True
         stationary = _stationary(self.history, rule.jtol, rule.window) or (
             rule.stationary_terms == "j-or-data" and _stationary(self.data_history, rule.jtol, rule.window)
         )
-        return stationary and (self.low_pass is None or _low_band_settled(self.low_band, rule.rtol, self.xp))
+        if not stationary or self.low_pass is None:
+            return stationary
+        if self.low_band_still is None:  # asked once per snapshot: its sums cost a round trip
+            self.low_band_still = _low_band_settled(self.low_band, rule.rtol, self.xp)
+        return self.low_band_still
 
-    def extrapolate(self, psi, d):
+    def extrapolate(self, psi, d, trial: _Trial | None = None):
         """Algorithm S1, lines 12-13: phi = psi - eta d and the next point
         phi + beta (phi - phi_prev), with the momentum dropped when it points uphill along
         the preconditioned gradient or has made no new low of J for :attr:`stall_limit`
         iterations (the uphill test can stay silent for ever while J oscillates: at
-        L1 = 0, one 1000-iteration run)."""
-        phi, uphill = kernels.descent_point(psi, d, self.phi_prev, self.eta)
+        L1 = 0, one 1000-iteration run). phi is the accepted ``trial``'s where it was taken
+        with this eta."""
+        if trial is not None and trial.eta == self.eta:
+            phi, uphill = trial.phi, trial.uphill
+        else:  # a rejected point, or eta set by the first step search: momentum is off (beta 0)
+            phi, uphill = kernels.descent_point(psi, d, self.phi_prev, self.eta, host=False)
         mu_prev = self.mu
         self.mu = 0.5 * (1.0 + math.sqrt(1.0 + 4.0 * self.mu * self.mu))
         beta = (mu_prev - 1.0) / self.mu
@@ -338,7 +398,12 @@ def pwf(
         k += 1
         # an over-long trial step may overflow exp(psi); J is then inf and the step is rejected
         with np.errstate(over="ignore", invalid="ignore"):
-            j, d, ev = objective_and_direction(psi, y, model)
+            sums, d, ev = objective_sums_and_direction(psi, y, model)
+            trial = run.trial(psi, d, ev, k)
+            numbers = host_numbers([*sums, *trial.sums()])  # the iteration's one transfer
+        ev.loss = numbers[0]
+        j = objective_of_sums(numbers[: len(sums)], model)
+        trial.take(numbers[len(sums) :])
         if not math.isfinite(j):
             if run.last is None:
                 raise FloatingPointError("PWF objective is not finite at the first iterate")
@@ -348,20 +413,21 @@ def pwf(
             j = math.inf  # a rejected trial step; the run goes on from the last accepted point
         if run.rose(j):
             psi, j, d, ev = run.reject()
+            trial = None
             if run.eta < 1e-12 * step:
                 reason = "step collapsed"
                 break
         else:
             if run.last is None and step_search:
                 run.eta = step / largest_curvature(psi, y, model, direction=d)
-            run.accept(psi, j, d, ev, ev.loss / (4.0 * model.norm))
+            run.accept(psi, j, d, ev, ev.loss / (4.0 * model.norm), trial)
             if callback is not None:
                 callback(k, j, psi)
             if run.converged(psi, k):
                 converged = True
                 reason = "converged"
                 break
-        psi = run.extrapolate(psi, d)
+        psi = run.extrapolate(psi, d, trial)
     psi_best, _, _, ev_best = run.last
     return PWFSolution(
         psi=psi_best,
