@@ -12,7 +12,8 @@
   given, the CUDA kernels off and on: gain, error, iterations and seconds; then 2-4 of it at
   once on their own streams (:func:`concurrent_rows`: a scan's throughput per GPU);
 - ``tomo``: a 801-angle x 8-row x 2560-px block of exact disc sinograms through the device's
-  FBP and the host's gridrec (:func:`tomo_rows`): seconds a slice, errors, agreement.
+  FBP (the CuPy backprojector, the CUDA backprojection kernel) and the host's gridrec
+  (:func:`tomo_rows`): seconds a slice, errors, agreement.
 
 ``python -m benchmarks.gpu_checks OUT_DIR memory|threads|strip [ANGLES]|camera|tomo``: one JSON line per row
 on stdout, and ``OUT_DIR/<part>.json``. Session 42's rows: ``benchmarks/results/memory_model_gpu.md``
@@ -174,7 +175,6 @@ def camera_rows(cp, shape=(2160, 2560), seed: int = 0) -> list[dict]:
     from dataclasses import replace
 
     from benchmarks.frame_size import phase_gain, phase_rms_error
-    from pwf_dask.pwf import kernels
     from pwf_dask.simulation import GEOMETRY_KEYS, SpeckleSetup, SpeckleSimulator
     from pwf_dask.simulation.phantoms import PAPER_BEAD_RADIUS_M, scan_phantom
 
@@ -189,7 +189,7 @@ def camera_rows(cp, shape=(2160, 2560), seed: int = 0) -> list[dict]:
     geometry = {name: getattr(setup, name) for name in GEOMETRY_KEYS if not name.startswith("coherence")}
 
     def retrieve(sample, reference, fused: bool, **options):
-        saved, kernels.cuda_kernels = kernels.cuda_kernels, fused
+        saved, backend.cuda_kernels = backend.cuda_kernels, fused
         try:
             cp.cuda.Stream.null.synchronize()
             t0 = time.perf_counter()
@@ -197,7 +197,7 @@ def camera_rows(cp, shape=(2160, 2560), seed: int = 0) -> list[dict]:
             recovered = cp.asnumpy(r.phase)
             return r, recovered, time.perf_counter() - t0
         finally:
-            kernels.cuda_kernels = saved
+            backend.cuda_kernels = saved
 
     retrieve(sample[:256, :256], reference[:256, :256], False, max_iter=20)
     retrieve(sample[:256, :256], reference[:256, :256], True, max_iter=20)
@@ -287,22 +287,31 @@ def tomo_rows(cp, rows: int = 8, angles: int = 801, width: int = 2560) -> list[d
     host_fft = FFT.for_module(np, default_fft_workers())
     device_fft = FFT.for_module(cp)
     out, results = [], {}
-    plans = [("host", "gridrec", np, host_fft), ("device", "backproject", cp, device_fft)]
+    plans = [
+        ("host", "gridrec", np, host_fft, False),
+        ("device", "backproject", cp, device_fft, False),
+        ("device", "backproject", cp, device_fft, True),  # the CUDA backprojection kernel
+    ]
     if gridrec.available(cp):
-        plans.append(("device", "gridrec", cp, device_fft))
-    for where, method, xp, fft in plans:
-        tomography.back_projection(xp.asarray(sino[:8, :1, :256]), theta[:8], 1.0, fft=fft, method=method)
-        cp.cuda.Stream.null.synchronize()
-        t0 = time.perf_counter()
-        slices = tomography.back_projection(xp.asarray(sino), theta, 1.0, fft=fft, method=method)
-        slices = cp.asnumpy(slices) if xp is cp else slices
-        seconds = time.perf_counter() - t0
-        results[(where, method)] = slices
+        plans.append(("device", "gridrec", cp, device_fft, False))
+    for where, method, xp, fft, kernel in plans:
+        saved, backend.cuda_kernels = backend.cuda_kernels, kernel
+        try:
+            tomography.back_projection(xp.asarray(sino[:8, :1, :256]), theta[:8], 1.0, fft=fft, method=method)
+            cp.cuda.Stream.null.synchronize()
+            t0 = time.perf_counter()
+            slices = tomography.back_projection(xp.asarray(sino), theta, 1.0, fft=fft, method=method)
+            slices = cp.asnumpy(slices) if xp is cp else slices
+            seconds = time.perf_counter() - t0
+        finally:
+            backend.cuda_kernels = saved
+        results[(where, method + ("-kernel" if kernel else ""))] = slices
         error = np.sqrt(np.mean((slices[:, inside] - truth[:, inside]) ** 2) / np.mean(truth[:, inside] ** 2))
         out.append(
             dict(
                 where=where,
                 fbp=method,
+                cuda_kernel=kernel,
                 threads=fft.workers if xp is np else None,
                 angles=angles,
                 rows=rows,
@@ -316,7 +325,14 @@ def tomo_rows(cp, rows: int = 8, angles: int = 801, width: int = 2560) -> list[d
         print(json.dumps(out[-1]), flush=True)
     host, device = results[("host", "gridrec")], results[("device", "backproject")]
     agreement = np.sqrt(np.mean((device[:, inside] - host[:, inside]) ** 2) / np.mean(host[:, inside] ** 2))
-    out.append(dict(device_backproject_vs_host_gridrec_relative_rms=float(agreement)))
+    kernel = results[("device", "backproject-kernel")]
+    kernel_gap = np.abs(kernel - device).max() / np.abs(device).max()
+    out.append(
+        dict(
+            device_backproject_vs_host_gridrec_relative_rms=float(agreement),
+            cuda_kernel_vs_backproject_max_relative=float(kernel_gap),
+        )
+    )
     print(json.dumps(out[-1]), flush=True)
     if not gridrec.available(cp):
         out.append(dict(note="cufinufft is not installed: no gridrec on the device"))

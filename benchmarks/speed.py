@@ -17,10 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.reporting import device_name, interleaved_min, write_rows_csv
+from pwf_dask import backend
 from pwf_dask.backend import FFT, default_fft_workers, resolve_device
 from pwf_dask.physics import optics
 from pwf_dask.pipeline import estimate
-from pwf_dask.pwf import kernels, solver
+from pwf_dask.pwf import solver
 from pwf_dask.stores import scan_io
 from pwf_dask.tomo import tomography
 from tests.algorithm_s1 import algorithm_s1_inputs, algorithm_s1_step
@@ -77,11 +78,11 @@ def iteration_benchmark(
         # the CUDA kernels of pwf.kernels beside the default (PWF_DASK_CUDA_KERNELS), the same run
         def with_kernels(n):
             def run():
-                saved, kernels.cuda_kernels = kernels.cuda_kernels, True
+                saved, backend.cuda_kernels = backend.cuda_kernels, True
                 try:
                     solver.pwf(y, model, max_iter=n, tol=0, step=1e-3, step_search=False)
                 finally:
-                    kernels.cuda_kernels = saved
+                    backend.cuda_kernels = saved
 
             return run
 

@@ -76,6 +76,18 @@ def to_numpy(a: Any) -> np.ndarray:
     return np.asarray(a)
 
 
+#: whether CuPy arrays go through the package's CUDA kernels (``PWF_DASK_CUDA_KERNELS=1``): the
+#: PWF iteration's element-wise passes (``pwf_dask.pwf.kernels._CUDA_KERNELS``) and the
+#: backprojector (``pwf_dask.tomo.tomography``). Off by default until the device tests have run
+#: with them on: on an H200 every iteration kernel gives the CuPy expressions' numbers
+#: (``tests/test_kernels.py`` passed on the device, sessions 48 and 61); session 48's sums to a
+#: scalar ran on one block (3.5x slower at 2160 x 2560), and with rows reduced first a
+#: full-frame iteration is 1.06-1.16x faster with them (session 61: 5.54 against 6.45 ms on the
+#: 1.5x field grid; 0.91-1.23x below 2048^2, where launches bound it). The backprojection
+#: kernel (session 63) has not met a device yet. Off: the array-module forms, as the CPU
+#: emulator runs them
+cuda_kernels = os.environ.get("PWF_DASK_CUDA_KERNELS", "0") == "1"
+
 #: whether each thread's device work runs on a CUDA stream of its own (:func:`task_stream`);
 #: False: every thread on CuPy's null stream (``benchmarks/gpu_checks.py`` times the two)
 task_streams = True

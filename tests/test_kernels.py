@@ -162,7 +162,7 @@ def test_the_iteration_on_mkl_transforms_gives_the_pocketfft_direction():
 @pytest.mark.parametrize("cdtype", [np.complex64, np.complex128])
 def test_each_cuda_kernel_gives_the_cupy_expression(cdtype):
     """On a CUDA device each pass runs as one CuPy kernel (``kernels._CUDA_KERNELS``): it gives
-    the CuPy expressions it replaces (``kernels.cuda_kernels = False``) and the NumPy loops, to
+    the CuPy expressions it replaces (``backend.cuda_kernels = False``) and the NumPy loops, to
     the precision's rounding; the CPU emulator has no kernels, so this runs on a device only (with the kernels on,
     whatever ``PWF_DASK_CUDA_KERNELS`` says)."""
     cp = backend.cupy_or_none()
@@ -194,11 +194,11 @@ def test_each_cuda_kernel_gives_the_cupy_expression(cdtype):
         return tuple(host(a) for a in result) if isinstance(result, tuple) else cp.asnumpy(cp.asarray(result))
 
     def on_device(fn, args, fused: bool):
-        saved, kernels.cuda_kernels = kernels.cuda_kernels, fused
+        saved, backend.cuda_kernels = backend.cuda_kernels, fused
         try:
             return host(fn(*[cp.asarray(a) if isinstance(a, np.ndarray) else a for a in args]))
         finally:
-            kernels.cuda_kernels = saved
+            backend.cuda_kernels = saved
 
     for fn, args in calls:
         fused, plain = on_device(fn, args, True), on_device(fn, args, False)

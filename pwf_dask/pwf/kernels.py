@@ -8,7 +8,7 @@ had about thirty of them (issue #31). The compiled loops accumulate sums in floa
 :func:`pwf_dask.backend.inner` does, so they agree with the NumPy expressions to float32
 rounding (``tests/test_kernels.py``). On a CUDA device the same loops are written as CuPy
 element-wise and reduction kernels (:data:`_CUDA_KERNELS`, compiled on first use; opt-in with
-``PWF_DASK_CUDA_KERNELS=1``, :data:`cuda_kernels`): CuPy runs each NumPy
+``PWF_DASK_CUDA_KERNELS=1``, :data:`pwf_dask.backend.cuda_kernels`): CuPy runs each NumPy
 operation as its own kernel, so ``(f - y) * mask`` and its sum of squares cost four launches and
 four memory passes there too, and the launches, not the bandwidth, bound an iteration below
 about 1024^2 (issue #31: 1.8 ms at 512^2 against a 0.03 ms FFT on an H100). The CPU emulator
@@ -30,11 +30,11 @@ Each function names the paper's quantity it computes:
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import numpy as np
 
+from pwf_dask import backend
 from pwf_dask.backend import elementwise_pool, get_array_module
 
 #: the numba module once imported (on first use: it costs half a second), or None where it is
@@ -69,21 +69,13 @@ def _cpu(*arrays) -> bool:
     return all(isinstance(a, np.ndarray) and a.flags.c_contiguous for a in arrays) and _numba() is not None
 
 
-#: whether CuPy arrays go through the CUDA kernels below (``PWF_DASK_CUDA_KERNELS=1``). Off by
-#: default until the device tests have run with them on: on an H200 every kernel gives the CuPy
-#: expressions' numbers (``tests/test_kernels.py`` passed on the device, sessions 48 and 61);
-#: session 48's sums to a scalar ran on one block (3.5x slower at 2160 x 2560), and with rows
-#: reduced first (:func:`_cuda_sum`) a full-frame iteration is 1.06-1.16x faster with them
-#: (session 61: 5.54 against 6.45 ms on the 1.5x field grid; 0.91-1.23x below 2048^2, where
-#: launches bound it). Off: the array-module form, as the CPU emulator runs it
-cuda_kernels = os.environ.get("PWF_DASK_CUDA_KERNELS", "0") == "1"
 _CUDA_COMPILED: dict = {}
 
 
 def _cuda(*arrays):
     """The CuPy module where every array is a CuPy array of a real CUDA device and the kernels
     are on, else None."""
-    if not cuda_kernels or any(isinstance(a, np.ndarray) for a in arrays):
+    if not backend.cuda_kernels or any(isinstance(a, np.ndarray) for a in arrays):
         return None
     xp = get_array_module(*arrays)
     return xp if xp is not np and hasattr(xp, "ElementwiseKernel") else None
