@@ -13,9 +13,11 @@
   once on their own streams (:func:`concurrent_rows`: a scan's throughput per GPU);
 - ``tomo``: a 801-angle x 8-row x 2560-px block of exact disc sinograms through the device's
   FBP (the CuPy backprojector, the CUDA backprojection kernel) and the host's gridrec
-  (:func:`tomo_rows`): seconds a slice, errors, agreement.
+  (:func:`tomo_rows`): seconds a slice, errors, agreement;
+- ``warm``: one step of a warm-start chain on the camera frame (:func:`warm_rows`), under
+  either stop rule: iterations and seconds from zero and from the frame before.
 
-``python -m benchmarks.gpu_checks OUT_DIR memory|threads|strip [ANGLES]|camera|tomo``: one JSON line per row
+``python -m benchmarks.gpu_checks OUT_DIR memory|threads|strip [ANGLES]|camera|tomo|warm``: one JSON line per row
 on stdout, and ``OUT_DIR/<part>.json``. Session 42's rows: ``benchmarks/results/memory_model_gpu.md``
 and docs/benchmarks.md ("On a GPU").
 """
@@ -227,6 +229,78 @@ def camera_rows(cp, shape=(2160, 2560), seed: int = 0) -> list[dict]:
     return rows
 
 
+#: two of the paper's 801 angles over 180 degrees: the step between a chain's projections
+CHAIN_STEP_DEG = 0.45
+
+
+def warm_rows(cp, shape=(2160, 2560), seed: int = 0, step_deg: float = CHAIN_STEP_DEG) -> list[dict]:
+    """One step of a warm-start chain on the camera frame, on the device: the ``paper``
+    preset's frame at 0 and ``step_deg`` (simulated on the host), frame 0 from zero under
+    ``stationary_terms="j-or-data"`` (its coherence calibrated, then given), frame 1 from frame
+    0's psi under either stop rule, and frame 1 from zero under each. On this machine's CPU
+    (session 62) they took 300, 160, 160, 300 and 587 iterations; the scan's model (docs/gpu.md)
+    takes these counts at the device's iteration time: this measures both."""
+    from dataclasses import replace
+
+    from benchmarks.frame_size import phase_gain, phase_rms_error
+    from pwf_dask.simulation import GEOMETRY_KEYS, SpeckleSetup, SpeckleSimulator
+    from pwf_dask.simulation.phantoms import PAPER_BEAD_RADIUS_M, scan_phantom
+
+    t0 = time.perf_counter()
+    setup = replace(SpeckleSetup(), shape=tuple(shape))
+    phantom = scan_phantom(setup.shape, setup.pixel_size_m, seed, bead_radius_range_m=PAPER_BEAD_RADIUS_M)
+    sim = SpeckleSimulator(setup, seed=seed)
+    frames = [sim.project(phantom)[:2]]
+    reference = cp.asarray(sim.reference())
+    frames.append(sim.project(phantom, step_deg)[:2])
+    del sim
+    print(json.dumps({"simulated_s": time.perf_counter() - t0}), flush=True)
+    geometry = {name: getattr(setup, name) for name in GEOMETRY_KEYS if not name.startswith("coherence")}
+    crop = (slice(0, 256), slice(0, 256))
+    retrieve_projection(cp.asarray(frames[0][0][crop]), reference[crop], **geometry, max_iter=20)  # plans
+    rows, given = [], {}
+
+    def run(name: str, index: int, terms: str, start=None):
+        sample, phase = frames[index]
+        cp.cuda.Stream.null.synchronize()
+        t1 = time.perf_counter()
+        r = retrieve_projection(
+            cp.asarray(sample),
+            reference,
+            **geometry,
+            **given,
+            stationary_terms=terms,
+            initial="zero" if start is None else start,
+            zero_background=index == 1,  # frame 0 keeps the solver's psi: the next one's start
+        )
+        recovered = cp.asnumpy(r.phase)
+        seconds = time.perf_counter() - t1
+        rows.append(
+            dict(
+                run=name,
+                frame=f"{shape[0]}x{shape[1]}",
+                stationary_terms=terms,
+                iterations=r.iterations,
+                converged=bool(r.converged),
+                seconds=seconds,
+                phase_gain=phase_gain(recovered, phase) if index == 1 else None,
+                phase_rms_error_rad=phase_rms_error(recovered, phase) if index == 1 else None,
+            )
+        )
+        print(json.dumps(rows[-1]), flush=True)
+        return r
+
+    first = run("frame 0 from zero, calibrating", 0, "j-or-data")
+    given.update(coherence_length_x_m=first.coherence_length_x_m, coherence_length_y_m=first.coherence_length_y_m)
+    first = run("frame 0 from zero", 0, "j-or-data")
+    start = -first.attenuation + 1j * first.phase  # the unzeroed psi, as a chain starts from
+    for terms in ("j-or-data", "j"):
+        run(f"frame 1 from frame 0 ({step_deg} deg)", 1, terms, start)
+    for terms in ("j-or-data", "j"):
+        run("frame 1 from zero", 1, terms)
+    return rows
+
+
 def concurrent_rows(cp, retrieve_one, alone_s: float, counts=(2, 3, 4)) -> list[dict]:
     """Throughput of one GPU on whole camera frames: ``n`` retrievals at once on ``n``
     threads, each on its own stream (``backend.task_stream``, as ``pwf-dask run --device
@@ -354,8 +428,10 @@ def main(argv=None) -> None:
         rows = strip_rows(int(argv[2]) if len(argv) > 2 else 101)
     elif part == "tomo":
         rows = tomo_rows(cp)
+    elif part == "warm":
+        rows = warm_rows(cp)
     else:
-        raise SystemExit(f"unknown part {part!r}: memory, threads, strip, camera or tomo")
+        raise SystemExit(f"unknown part {part!r}: memory, threads, strip, camera, tomo or warm")
     with open(f"{out}/{part}.json", "w") as f:
         json.dump(rows, f, indent=1)
 

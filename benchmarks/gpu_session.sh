@@ -3,14 +3,16 @@
 # that one stuck step leaves the others' results: the CUDA kernels' test, the GPU tests, the
 # iteration bench, then benchmarks/gpu_checks.py's camera part (the whole frame alone and
 # 2-4 at once on one GPU), its tomo part (a 2560-wide block on the device and on the host's
-# cores) and, while BUDGET_S seconds last, its strip part.
+# cores), its warm part (a chain's step on the camera frame under either stop rule) and, while
+# BUDGET_S seconds last, its strip part.
 #
 #   BUDGET_S=540 bash benchmarks/gpu_session.sh OUT_DIR [STRIP_ANGLES]
 #
 # Writes OUT_DIR/log.txt (every step's tail, with seconds since the start), OUT_DIR/bench/
-# (bench_iteration_gpu.*) and OUT_DIR/{camera,tomo,strip}.json. About 9 minutes on an H200
-# (session 61; docs/gpu.md). Needs the package importable (pip install -e ".[gpu,test]", or
-# PYTHONPATH set to the checkout) and a CUDA device.
+# (bench_iteration_gpu.*) and OUT_DIR/{camera,tomo,warm,strip}.json. About 9 minutes on an H200
+# (session 61; docs/gpu.md); the warm part (session 63, ~2.5 min) comes out of the strip's
+# budget. Needs the package importable (pip install -e ".[gpu,test]", or PYTHONPATH set to the
+# checkout) and a CUDA device.
 set -u -o pipefail
 out=${1:?usage: gpu_session.sh OUT_DIR [STRIP_ANGLES]}
 angles=${2:-41}
@@ -31,6 +33,8 @@ step "camera: the paper preset's whole 2160 x 2560 frame, alone and 2-4 at once"
 timeout 150 "$py" -m benchmarks.gpu_checks "$out" camera 2>&1 | tail -8 | tee -a "$log"
 step "tomo: 801 angles x 8 rows x 2560 px, device and host"
 timeout 60 "$py" -m benchmarks.gpu_checks "$out" tomo 2>&1 | tail -5 | tee -a "$log"
+step "warm: a chain's step on the camera frame, either stop rule"
+timeout 200 "$py" -m benchmarks.gpu_checks "$out" warm 2>&1 | tail -8 | tee -a "$log"
 left=$((${BUDGET_S:-540} - ($(date +%s) - t0)))
 if [ "$left" -gt 60 ]; then
     step "strip $angles ($left s left)"

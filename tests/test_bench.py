@@ -152,3 +152,26 @@ def test_coarse_start_bins_and_interpolates_on_the_detectors_pixel_centres():
     odd_plane = plane[:63, :95]
     odd = upsampled(binned(odd_plane), 2, odd_plane.shape)
     assert odd.shape == (63, 95) and np.allclose(odd[1:-2, 1:-2], odd_plane[1:-2, 1:-2], atol=1e-12)
+
+
+@pytest.mark.gpu
+def test_gpu_checks_warm_part_starts_the_second_frame_from_the_first(cupy):
+    """``gpu_checks OUT warm`` on a small frame: frame 0 from zero (calibrating, then with its
+    lengths given: the same run), frame 1 from frame 0 and from zero under either stop rule;
+    the warm starts need fewer iterations than the cold ones and read the same phase."""
+    from benchmarks import gpu_checks
+
+    rows = gpu_checks.warm_rows(cupy, shape=(64, 96))
+    assert [r["run"].split(" (")[0] for r in rows] == [
+        "frame 0 from zero, calibrating",
+        "frame 0 from zero",
+        "frame 1 from frame 0",
+        "frame 1 from frame 0",
+        "frame 1 from zero",
+        "frame 1 from zero",
+    ]
+    assert [r["stationary_terms"] for r in rows[2:]] == ["j-or-data", "j", "j-or-data", "j"]
+    assert rows[0]["iterations"] == rows[1]["iterations"]
+    warm, cold = rows[3], rows[5]  # the default rule
+    assert warm["iterations"] < cold["iterations"]
+    assert abs(warm["phase_gain"] - cold["phase_gain"]) < 0.05
