@@ -233,7 +233,8 @@ def _backproject_kernel(qz, angles_deg, t0: float, n_out: int, xp):
     na, nr, nq = qz.shape
     out = xp.empty((nr, n_out * n_out), dtype=xp.float32)
     cos_th, sin_th = (xp.asarray(f(theta), dtype=xp.float32) for f in (np.cos, np.sin))
-    _KERNELS["backproject"](xp.ascontiguousarray(qz), cos_th, sin_th, na, nr, nq, n_out, t0, out)
+    # flat: a raw argument is indexed by its flat index (i and n are CuPy's own names)
+    _KERNELS["backproject"](xp.ascontiguousarray(qz).ravel(), cos_th, sin_th, na, nr, nq, n_out, t0, out)
     return out
 
 
