@@ -331,7 +331,7 @@ def largest_curvature(psi, y, model: PWFModel, direction=None, iterations: int =
         # never moved the phase): the probe is capped per pixel too
         h = min(CURVATURE_PROBE_RMS, CURVATURE_PROBE_MAX / max(float(xp.abs(v).max()), 1e-30))
         with np.errstate(over="ignore", invalid="ignore"):
-            _, d, _ = objective_and_direction(psi + h * v, y, model)
+            _, d, _ = objective_sums_and_direction(psi + h * v, y, model)  # J's sums not fetched
         d -= direction
         d *= 1.0 / h
         d_norm = metric_norm(d, model, weights)
