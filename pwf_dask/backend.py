@@ -437,7 +437,7 @@ def host_numbers(values: list) -> list:
     if not on_device:
         return list(values)
     xp = get_array_module(values[on_device[0]])
-    fetched = xp.concatenate([values[i].reshape(1).astype(xp.complex128) for i in on_device]).get()
+    fetched = to_numpy(xp.concatenate([values[i].reshape(1).astype(xp.complex128) for i in on_device]))
     out = list(values)
     for i, number in zip(on_device, fetched):
         complex_sum = values[i].dtype.kind == "c"

@@ -148,3 +148,4 @@ def test_host_numbers_fetches_device_sums_at_once_and_exactly(cupy):
     assert numbers == one_by_one
     assert [type(v) for v in numbers] == [float, float, complex, complex, float, float]
     assert backend.host_numbers([1.0, 3j]) == [1.0, 3j]
+    assert backend.host_numbers([np.array(2.5, np.float32), np.float32(0.5)]) == [2.5, np.float32(0.5)]  # 0-d host too
