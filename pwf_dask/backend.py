@@ -84,8 +84,7 @@ def to_numpy(a: Any) -> np.ndarray:
 #: scalar ran on one block (3.5x slower at 2160 x 2560), and with rows reduced first a
 #: full-frame iteration is 1.06-1.16x faster with them (session 61: 5.54 against 6.45 ms on the
 #: 1.5x field grid; 0.91-1.23x below 2048^2, where launches bound it). The backprojection
-#: kernel (session 63) has not met a device yet. Off: the array-module forms, as the CPU
-#: emulator runs them
+#: kernel (session 63) has not met a device yet. Off: the array-module forms
 cuda_kernels = os.environ.get("PWF_DASK_CUDA_KERNELS", "0") == "1"
 
 #: whether each thread's device work runs on a CUDA stream of its own (:func:`task_stream`);

@@ -12,7 +12,9 @@ CuPy array does (cupy/_core/core.pyx):
   assigning one into a slice (CuPy's default, without ``CUPY_EXPERIMENTAL_SLICE_COPY``);
 - reductions and scalar indexing return 0-d arrays, which convert with ``float()``;
 - ``fft`` keeps single precision (cupy.fft does, numpy.fft does not): it is ``scipy.fft``.
-- ``cupyx.scipy.ndimage`` (:data:`NDIMAGE`) is SciPy's on the wrapped arrays.
+- ``cupyx.scipy.ndimage`` (:data:`NDIMAGE`) is SciPy's on the wrapped arrays;
+- ``ElementwiseKernel`` and ``ReductionKernel`` compile their CUDA bodies as C++ with the host's
+  compiler (``tests/emulated_kernels.py``), so the package's CUDA kernels run here too.
 
 Functions are NumPy's with arrays unwrapped and results wrapped; only the names CuPy also
 has are offered (:data:`FUNCTIONS`), so code that needs a NumPy-only routine fails here as
@@ -353,10 +355,41 @@ def _module() -> types.ModuleType:
 
     pool = _MemoryPool()
     cp.get_default_memory_pool = lambda: pool
+    _user_kernels(cp)
     cuda.Stream = _Stream
     cuda.get_current_stream = lambda: (getattr(_current, "stack", None) or [null])[-1]
     cp.cuda = cuda
     return cp
+
+
+def _kernel_operand(x):
+    """A user kernel's operand as NumPy: a device array's buffer; a host array is refused, as
+    CuPy refuses it."""
+    if isinstance(x, ndarray):
+        return x._a
+    if isinstance(x, np.ndarray) and x.ndim > 0:
+        raise TypeError(_MIXING)
+    return x
+
+
+def _user_kernels(cp) -> None:
+    """``ElementwiseKernel`` and ``ReductionKernel``, their CUDA bodies compiled by the host's
+    C++ compiler (``tests/emulated_kernels.py``), where one is found; without one the module has
+    none, and the package's kernel paths (``backend.cuda_kernels``) stay off here."""
+    import emulated_kernels
+
+    if not emulated_kernels.available():
+        return
+
+    class ElementwiseKernel(emulated_kernels.ElementwiseKernel):
+        def __call__(self, *args, **kwargs):
+            return super().__call__(*args, wrap=_wrap, unwrap=_kernel_operand, **kwargs)
+
+    class ReductionKernel(emulated_kernels.ReductionKernel):
+        def __call__(self, *args, **kwargs):
+            return super().__call__(*args, wrap=_wrap, unwrap=_kernel_operand, **kwargs)
+
+    cp.ElementwiseKernel, cp.ReductionKernel = ElementwiseKernel, ReductionKernel
 
 
 #: ``cupyx.scipy.ndimage`` routines the package calls (the same names and modes as SciPy's)

@@ -11,8 +11,8 @@ element-wise and reduction kernels (:data:`_CUDA_KERNELS`, compiled on first use
 ``PWF_DASK_CUDA_KERNELS=1``, :data:`pwf_dask.backend.cuda_kernels`): CuPy runs each NumPy
 operation as its own kernel, so ``(f - y) * mask`` and its sum of squares cost four launches and
 four memory passes there too, and the launches, not the bandwidth, bound an iteration below
-about 1024^2 (issue #31: 1.8 ms at 512^2 against a 0.03 ms FFT on an H100). The CPU emulator
-of CuPy (``tests/emulated_cupy.py``) has no kernels: it runs the array-module form.
+about 1024^2 (issue #31: 1.8 ms at 512^2 against a 0.03 ms FFT on an H100). The tests' CPU
+emulator of CuPy (``tests/emulated_cupy.py``) runs these kernels' bodies compiled as C++.
 
 Each function names the paper's quantity it computes:
 
@@ -82,17 +82,17 @@ def _cuda(*arrays):
 
 
 def _cuda_kernel(xp, name: str):
-    """The CUDA kernel ``name`` of :data:`_CUDA_KERNELS`, built once per process. Complex
-    operands are CuPy's ``complex<float|double>``; sums are accumulated in double, as the numba
-    loops do."""
-    if name not in _CUDA_COMPILED:
+    """The CUDA kernel ``name`` of :data:`_CUDA_KERNELS`, built once per process and CuPy
+    module (the tests' emulator is another module). Complex operands are CuPy's
+    ``complex<float|double>``; sums are accumulated in double, as the numba loops do."""
+    if (xp, name) not in _CUDA_COMPILED:
         kind, *spec = _CUDA_KERNELS[name]
         if kind == "map":
             kernel = xp.ElementwiseKernel(*spec, name=f"pwf_{name}")
         else:
             kernel = xp.ReductionKernel(*spec, name=f"pwf_{name}", reduce_type="double")
-        _CUDA_COMPILED[name] = kernel
-    return _CUDA_COMPILED[name]
+        _CUDA_COMPILED[(xp, name)] = kernel
+    return _CUDA_COMPILED[(xp, name)]
 
 
 def _cuda_sum(xp, name: str, *arrays, host: bool = True) -> float:

@@ -215,14 +215,15 @@ for (int a = 0; a < na; ++a) {
 out = acc;
 """
 
-_KERNELS: dict = {}
+#: CuPy module -> its compiled backprojection kernel
+_BACKPROJECT_KERNELS: dict = {}
 
 
 def _backproject_kernel(qz, angles_deg, t0: float, n_out: int, xp):
-    """:func:`_backproject_loop` by :data:`BACKPROJECT_KERNEL` (compiled once per process);
-    ``t0`` the detector column of the axis (pixels)."""
-    if "backproject" not in _KERNELS:
-        _KERNELS["backproject"] = xp.ElementwiseKernel(
+    """:func:`_backproject_loop` by :data:`BACKPROJECT_KERNEL` (compiled once per process and
+    CuPy module); ``t0`` the detector column of the axis (pixels)."""
+    if xp not in _BACKPROJECT_KERNELS:
+        _BACKPROJECT_KERNELS[xp] = xp.ElementwiseKernel(
             "raw float32 qz, raw float32 cos_th, raw float32 sin_th, int32 na, int32 nr, int32 nq, "
             "int32 n_out, float32 t0",
             "float32 out",
@@ -234,7 +235,7 @@ def _backproject_kernel(qz, angles_deg, t0: float, n_out: int, xp):
     out = xp.empty((nr, n_out * n_out), dtype=xp.float32)
     cos_th, sin_th = (xp.asarray(f(theta), dtype=xp.float32) for f in (np.cos, np.sin))
     # flat: a raw argument is indexed by its flat index (i and n are CuPy's own names)
-    _KERNELS["backproject"](xp.ascontiguousarray(qz).ravel(), cos_th, sin_th, na, nr, nq, n_out, t0, out)
+    _BACKPROJECT_KERNELS[xp](xp.ascontiguousarray(qz).ravel(), cos_th, sin_th, na, nr, nq, n_out, t0, out)
     return out
 
 
