@@ -24,7 +24,7 @@ t0=$(date +%s)
 step() { echo "== [$(($(date +%s) - t0)) s] $*" | tee -a "$log"; }
 { nvidia-smi -L; "$py" -c "import cupy, numpy; print('cupy', cupy.__version__, 'numpy', numpy.__version__)"; } 2>&1 | tee -a "$log"
 step "CUDA kernels' test"
-PWF_DASK_CUDA_KERNELS=1 timeout 90 "$py" -m pytest -m gpu tests/test_kernels.py tests/test_tomography_fsc.py -k kernel -q -p no:cacheprovider -rfE 2>&1 | tail -20 | tee -a "$log"
+PWF_DASK_CUDA_KERNELS=1 timeout 90 "$py" -m pytest -m gpu tests/test_kernels.py tests/test_tomography_fsc.py tests/test_solver.py -k "kernel and device" -q -p no:cacheprovider -rfE 2>&1 | tail -20 | tee -a "$log"
 step "pytest -m gpu (device tests)"
 timeout 120 "$py" -m pytest -m gpu -k device -q -p no:cacheprovider -n 8 -rfE 2>&1 | tail -20 | tee -a "$log"
 step "bench iteration (CUDA kernels timed beside the default)"
