@@ -431,12 +431,14 @@ def host_numbers(values: list) -> list:
     that drains the queue of launched kernels and leaves the device idle while the host launches
     the next ones, so an iteration fetches all its sums at once (:func:`pwf_dask.pwf.solver.pwf`).
     Float sums stay floats and complex ones complex, exactly (widened to complex128 for the
-    transfer)."""
+    transfer by the copies that gather them: CuPy copies each array in a kernel of its own below
+    nine arrays, and a cast before each would be a second kernel)."""
     on_device = [i for i, v in enumerate(values) if not isinstance(v, numbers.Number)]
     if not on_device:
         return list(values)
     xp = get_array_module(values[on_device[0]])
-    fetched = to_numpy(xp.concatenate([values[i].reshape(1).astype(xp.complex128) for i in on_device]))
+    gathered = xp.concatenate([values[i].reshape(1) for i in on_device], dtype=xp.complex128)
+    fetched = to_numpy(gathered)
     out = list(values)
     for i, number in zip(on_device, fetched):
         complex_sum = values[i].dtype.kind == "c"
