@@ -6,8 +6,9 @@ import platform
 import numpy as np
 import pytest
 
+from pwf_dask import backend
 from pwf_dask.physics import optics
-from pwf_dask.pwf import operators, solver
+from pwf_dask.pwf import kernels, operators, solver
 
 
 def make_model(
@@ -569,8 +570,6 @@ def test_the_iteration_with_cuda_kernels_gives_the_cupy_iteration(cupy, rng, mon
     """Issue #31: the solver with its element-wise passes as CUDA kernels (``backend.cuda_kernels``,
     opt-in) iterates as with CuPy's expressions: 40 iterations give psi to float32 rounding. On
     the CPU emulator the kernels' bodies run compiled as C++ (``tests/emulated_kernels.py``)."""
-    from pwf_dask import backend
-
     if not hasattr(cupy, "ElementwiseKernel"):
         pytest.skip("no C++ compiler for the emulator's kernels")
     model, y = make_model(rng, precision="single", xp=cupy, **kw)
@@ -578,8 +577,6 @@ def test_the_iteration_with_cuda_kernels_gives_the_cupy_iteration(cupy, rng, mon
     for fused in (False, True):
         monkeypatch.setattr(backend, "cuda_kernels", fused)
         runs.append(solver.pwf(y, model, max_iter=40, tol=0))
-    from pwf_dask.pwf import kernels
-
     assert {"descent", "momentum", "uphill"} <= {name for xp, name in kernels._CUDA_COMPILED if xp is cupy}
     plain, fused = (cupy.asnumpy(r.psi) for r in runs)
     np.testing.assert_allclose(fused, plain, atol=1e-4 * np.abs(plain).max())

@@ -6,6 +6,7 @@ from scipy.ndimage import gaussian_filter, shift
 from skimage.data import shepp_logan_phantom
 from skimage.transform import iradon, radon, resize
 
+from pwf_dask import backend
 from pwf_dask.tomo import fsc, tomography
 
 
@@ -192,8 +193,6 @@ def test_the_cuda_backprojection_kernel_gives_the_loop(cupy, shepp, monkeypatch,
     CuPy loop's and NumPy's slices on an off-centre axis, grids wider and narrower than the
     detector (rays leaving it) and uneven angles, to its float32 t's rounding (2-3e-6 of the
     maximum). On the CPU emulator the body runs compiled as C++."""
-    from pwf_dask import backend
-
     if not hasattr(cupy, "ElementwiseKernel"):
         pytest.skip("no C++ compiler for the emulator's kernels")
     _, theta, sino = shepp
