@@ -73,8 +73,8 @@ _CUDA_COMPILED: dict = {}
 
 
 def _cuda(*arrays):
-    """The CuPy module where every array is a CuPy array of a real CUDA device and the kernels
-    are on, else None."""
+    """The CuPy module where every array is a CuPy array (of a CUDA device, or of the tests'
+    emulator, which compiles the kernels as C++) and the kernels are on, else None."""
     if not backend.cuda_kernels or any(isinstance(a, np.ndarray) for a in arrays):
         return None
     xp = get_array_module(*arrays)
