@@ -139,7 +139,8 @@ def interior_recon(tmp_path_factory):
         )
         == 0
     )
-    workflow.run_scan(scan, recon, max_iter=cli.DEMO_MAX_ITER)
+    workflow.retrieve_scan(scan, recon, max_iter=cli.DEMO_MAX_ITER)
+    workflow.tomo_scan(recon)  # as ``run``, without the FSC no measure here reads
     ds = xr.open_zarr(recon)
     ph = phantom_from_json(ds.attrs["simulation_phantom"])
     truth, _ = refractive_index_volume(ph, ds.y.values, ds.v.values, ds.u.values, ds.attrs["energy_eV"])

@@ -191,12 +191,15 @@ def test_start_from_umpa_reaches_the_solution(small_scene):
 
 @pytest.mark.slow
 def test_double_precision_agrees_with_single(small_scene):
+    """60 iterations in float32 and float64 (the curvature estimate and the momentum steps)
+    give the same phase to float32 rounding: measured 5.0e-6 of the sample's mean phase after
+    60 iterations, 1.0e-6 after 150 (session 65)."""
     sim = small_scene
-    r32 = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=150, tol=0))
-    r64 = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=150, tol=0, precision="double"))
+    r32 = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=60, tol=0))
+    r64 = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, max_iter=60, tol=0, precision="double"))
     inside = sim.phase < -0.5
     assert r64.phase.dtype == np.float64 and r32.phase.dtype == np.float32
-    assert np.abs(r64.phase - r32.phase)[inside].mean() < 0.02 * np.abs(sim.phase[inside]).mean()
+    assert np.abs(r64.phase - r32.phase)[inside].mean() < 1e-3 * np.abs(sim.phase[inside]).mean()
 
 
 @pytest.mark.parametrize("upstream_m", [0.0, 5e-3])

@@ -30,6 +30,15 @@ def tiny_scan(tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope="module")
+def fast_recon(tiny_scan, tmp_path_factory):
+    """``tiny_scan`` retrieved once with ``FAST`` on the threaded scheduler: the reference the
+    tests below compare with (read only; a test that writes to it takes a copy)."""
+    path = tmp_path_factory.mktemp("fast") / "threads.zarr"
+    workflow.retrieve_scan(tiny_scan, path, scheduler="threads", **FAST)
+    return path
+
+
 def stores_equal(a, b):
     da, db = xr.open_zarr(a), xr.open_zarr(b)
     for name in ("phase", "attenuation", "iterations", "residual_rmse"):
@@ -83,12 +92,10 @@ def test_fsc_compares_a_central_sub_volume_of_a_large_scan(tiny_scan, tmp_path, 
 
 
 @pytest.mark.parametrize("scheduler", ["processes", "local"])
-def test_schedulers_give_identical_results(tiny_scan, tmp_path, scheduler):
-    ref = tmp_path / "threads.zarr"
+def test_schedulers_give_identical_results(tiny_scan, fast_recon, tmp_path, scheduler):
     other = tmp_path / f"{scheduler}.zarr"
-    workflow.retrieve_scan(tiny_scan, ref, scheduler="threads", **FAST)
     workflow.retrieve_scan(tiny_scan, other, scheduler=scheduler, **FAST)
-    stores_equal(ref, other)
+    stores_equal(fast_recon, other)
 
 
 @pytest.mark.gpu
@@ -164,9 +171,9 @@ def test_gpu_threads_are_capped_by_the_device_memory(cupy, tiny_scan, tmp_path, 
         np.testing.assert_array_equal(xr.open_zarr(narrow)[name].values, xr.open_zarr(wide)[name].values)
 
 
-def test_resume_computes_only_missing(tiny_scan, tmp_path, monkeypatch):
+def test_resume_computes_only_missing(tiny_scan, fast_recon, tmp_path, monkeypatch):
     full = tmp_path / "full.zarr"
-    workflow.retrieve_scan(tiny_scan, full, **FAST)
+    shutil.copytree(fast_recon, full)  # a whole run's store: its rerun below must add to it
     part = tmp_path / "part.zarr"
     original = workflow._retrieve_task
     started = []
@@ -290,20 +297,23 @@ def test_angle_chains_keep_halves_and_positions_apart():
 @pytest.mark.slow
 def test_warm_started_chains_converge_faster_to_the_same_projections(tiny_scan, tmp_path, capsys):
     """PWF started from the projection two angles before stops sooner, at the same phase as
-    from zero (to a small part of the phase), and the store records the chain length."""
-    cold, warm = tmp_path / "cold.zarr", tmp_path / "warm.zarr"
-    workflow.retrieve_scan(tiny_scan, cold, angle_chain=1, max_iter=1000)
-    workflow.retrieve_scan(tiny_scan, warm, angle_chain=5, max_iter=1000)
+    from zero (to a small part of the phase), and the store records the chain length. One
+    position of ``tiny_scan``'s scene (the chains are per position): measured 0.84 of the cold
+    iterations, the phases 1.3 % rms of the phase apart (session 65)."""
+    scan, cold, warm = tmp_path / "one.zarr", tmp_path / "cold.zarr", tmp_path / "warm.zarr"
+    simulate_scan(scan, preset="demo", shape=(32, 64), angles=9, positions=1, seed=3, progress=False)
+    workflow.retrieve_scan(scan, cold, angle_chain=1, max_iter=1000)
+    workflow.retrieve_scan(scan, warm, angle_chain=5, max_iter=1000)
     c, w = xr.open_zarr(cold), xr.open_zarr(warm)
     assert (c.attrs["angle_chain"], w.attrs["angle_chain"]) == (1, 5)
     heads = np.zeros(c.iterations.shape, bool)
     for chain in workflow.angle_chains(c.angle.values, c.sizes["position"], 5):
         heads[chain[0]] = True
     np.testing.assert_array_equal(w.iterations.values[heads], c.iterations.values[heads])
-    # 0.86 measured with the default alpha (0.1+0.05j; it converges in fewer iterations from zero too)
+    # with the default alpha (0.1+0.05j) it converges in fewer iterations from zero too
     assert w.iterations.values[~heads].mean() < 0.9 * c.iterations.values[~heads].mean()
     scale = float(np.sqrt(np.mean(c.phase.values**2)))
-    assert float(np.sqrt(np.mean((w.phase.values - c.phase.values) ** 2))) < 0.2 * scale
+    assert float(np.sqrt(np.mean((w.phase.values - c.phase.values) ** 2))) < 0.05 * scale
     assert cli.main(["retrieve", str(tiny_scan), str(tmp_path / "no.zarr"), "--angle-chain", "0"]) != 0
     assert "angle_chain is a number of projections >= 1" in capsys.readouterr().err.strip().splitlines()[-1]
     assert not (tmp_path / "no.zarr").exists()
@@ -345,9 +355,9 @@ def test_a_chain_starts_from_the_solvers_psi_of_the_projection_before(tiny_scan,
     assert np.isfinite(ds["background_plane_phase"].values).all()
 
 
-def test_resume_refuses_other_parameters(tiny_scan, tmp_path):
+def test_resume_refuses_other_parameters(tiny_scan, fast_recon, tmp_path):
     recon = tmp_path / "r.zarr"
-    workflow.retrieve_scan(tiny_scan, recon, **FAST)
+    shutil.copytree(fast_recon, recon)
     with pytest.raises(scan_io.ScanError, match="other parameters"):
         workflow.retrieve_scan(tiny_scan, recon, max_iter=30, tol=0.0)
     with pytest.raises(scan_io.ScanError, match="angle_chain"):
@@ -567,7 +577,7 @@ def test_mist_scan_combines_four_positions_and_records_its_material(tiny_scan, t
     assert np.isfinite(ds["delta"].values).all()
 
 
-def test_single_material_prior_is_recorded_and_kept_on_resume(tiny_scan, tmp_path, capsys):
+def test_single_material_prior_is_recorded_and_kept_on_resume(tiny_scan, fast_recon, tmp_path, capsys):
     """``--single-material`` reaches PWF with the sample's delta/beta, the store records both,
     a resume without it is refused, and a bad ratio is refused before anything is written."""
     recon = tmp_path / "sm.zarr"
@@ -581,10 +591,9 @@ def test_single_material_prior_is_recorded_and_kept_on_resume(tiny_scan, tmp_pat
     capsys.readouterr()
     assert cli.main(["retrieve", str(tiny_scan), str(recon), *fast]) != 0
     assert "other parameters (single_material" in capsys.readouterr().err.strip().splitlines()[-1]
-    plain = tmp_path / "plain.zarr"
-    workflow.retrieve_scan(tiny_scan, plain, **FAST)
-    assert xr.open_zarr(plain).attrs["single_material"] is False
-    assert not np.array_equal(ds.phase.values, xr.open_zarr(plain).phase.values)
+    plain = xr.open_zarr(fast_recon)
+    assert plain.attrs["single_material"] is False
+    assert not np.array_equal(ds.phase.values, plain.phase.values)
     bad = ["retrieve", str(tiny_scan), str(tmp_path / "no.zarr"), "--single-material", "--sample-delta-over-beta", "-5"]
     assert cli.main(bad) != 0
     assert "sample_delta_over_beta must be positive" in capsys.readouterr().err.strip().splitlines()[-1]
