@@ -358,8 +358,8 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
         "--stationary-terms",
         default=DEFAULTS.stationary_terms,
         choices=STATIONARY_TERMS,
-        help="pwf: the stop's J test on J alone, or on J or its data term (large frames whose padding margin "
-        "settles late stop sooner: the camera's whole frame 300 iterations for 587; docs/validation.md)",
+        help="pwf: the stop's J test on J or its data term (the default: the camera's whole frame from zero "
+        "300 iterations for 587), or on J alone (the rule before session 67; docs/validation.md)",
     )
     p.add_argument(
         "--gamma",

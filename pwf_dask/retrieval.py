@@ -442,7 +442,7 @@ DRIFT_MIN_PX = 0.05
 DRIFT_MARGIN_PX = 2
 
 
-def check_solver_options(max_iter, tol, gamma, step, phase_scale=1.0, stationary_terms="j") -> None:
+def check_solver_options(max_iter, tol, gamma, step, phase_scale=1.0, stationary_terms="j-or-data") -> None:
     """Algorithm S1's numbers, each in its range, refused in one line naming the option
     (issue #28: ``--max-iter -5`` crashed deep in the solver, ``--tol -1`` never stopped)."""
     if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
@@ -541,8 +541,9 @@ def retrieve_projection(
     max_iter, tol, min_iter, patience, rtol, jtol, stationary_terms : stop rule
         :class:`pwf_dask.pwf.solver.StopRule`: ``tol`` is 1 - the field correlation of
         successive iterates (the paper's 1 - 10^-0.00001), ``tol=0`` runs ``max_iter``;
-        ``stationary_terms="j-or-data"`` lets J's data term pass the J test too (large frames
-        whose padding margin settles late: the camera frame 300 iterations for 587).
+        ``stationary_terms="j-or-data"`` (the default) lets J's data term pass the J test too
+        (large frames whose padding margin settles late: the camera frame 300 iterations for
+        587); ``"j"`` watches J alone (the rule before session 67).
     gamma, alpha : float, complex or str
         Regularization window width over the STF and weights, Eq. (regularization window) and
         Algorithm S2; ``alpha="paper"`` (0.1+0.01j) or ``"discrepancy"`` (:func:`parse_alpha`);

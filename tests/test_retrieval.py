@@ -134,30 +134,31 @@ def test_ablation_without_preconditioner_leaves_phase_near_zero(small_scene):
     assert gain(res.phase, sim.phase, sim.phase < -0.5) < 0.2
 
 
-def test_j_or_its_data_term_stops_the_small_scene_sooner_at_the_same_phase(small_scene, small_scene_result):
-    """``stationary_terms="j-or-data"`` (the camera frame: 300 iterations for 587, session 62)
-    also stops the P3000 256^2 scene from zero sooner, as sessions 55-56 found the J test is
-    what holds such frames (measured 174 for 360 iterations, gain 1.0086 / 1.0085, relative
-    phase error 0.0668 / 0.0655), at the same phase."""
-    sim, full = small_scene, small_scene_result
-    res = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, stationary_terms="j-or-data"))
-    assert (res.parameters["stationary_terms"], full.parameters["stationary_terms"]) == ("j-or-data", "j")
-    assert res.converged and res.iterations < 0.7 * full.iterations, (res.iterations, full.iterations)
-    g_res, g_full = (gain(r.phase, sim.phase, sim.phase < -0.5) for r in (res, full))
-    assert abs(g_res - g_full) < 0.01, (g_res, g_full)
-    assert relative_phase_error(res, sim) < relative_phase_error(full, sim) + 0.01
+def test_j_alone_stops_the_small_scene_later_at_the_same_phase(small_scene, small_scene_result):
+    """The default ``stationary_terms="j-or-data"`` (since session 67; the camera frame 300
+    iterations for 587, session 62) stops the P3000 256^2 scene from zero at about half the
+    iterations of the former rule, J's test on J alone, at the same phase: measured 174 for
+    360 iterations, gain 1.0086 / 1.0085, relative phase error 0.0668 / 0.0655."""
+    sim, default = small_scene, small_scene_result
+    j_alone = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, stationary_terms="j"))
+    assert (default.parameters["stationary_terms"], j_alone.parameters["stationary_terms"]) == ("j-or-data", "j")
+    assert default.converged and default.iterations < 0.7 * j_alone.iterations, (default.iterations, j_alone.iterations)
+    g_default, g_j = (gain(r.phase, sim.phase, sim.phase < -0.5) for r in (default, j_alone))
+    assert abs(g_default - g_j) < 0.01, (g_default, g_j)
+    assert relative_phase_error(default, sim) < relative_phase_error(j_alone, sim) + 0.01
 
 
 def test_the_sample_field_on_the_detector_grid_reads_the_beads_as_the_field_grid_does(small_scene, small_scene_result):
     """``sample_field_grid="detector"`` (6 field-grid FFTs per iteration, not 10) on the P3000
-    256^2 scene, calibrated coherence: the same 1.5x grid and phase gain to 0.005 (measured
-    1.0068 against 1.0084, the phases 0.05 rad rms apart of 14.3; docs/methods.md), recorded."""
+    256^2 scene, calibrated coherence: the same 1.5x grid and phase gain to 0.01 (measured
+    1.0035 against 1.0086, both stopped at 174 iterations, the phases 0.12 rad rms apart of
+    14.3; under J's test alone 1.0068 against 1.0085, 0.09 rad; docs/methods.md), recorded."""
     sim, field = small_scene, small_scene_result
     detector = retrieve_projection(sim.sample, sim.reference, **kwargs(sim, sample_field_grid="detector"))
     assert detector.parameters["sample_field_grid"] == "detector" and field.parameters["sample_field_grid"] == "field"
     assert detector.parameters["field_upsample"] == field.parameters["field_upsample"] == 1.5
     g_field, g_detector = (gain(r.phase, sim.phase, sim.phase < -0.5) for r in (field, detector))
-    assert abs(g_detector - g_field) < 0.005 and 0.95 < g_detector < 1.05, (g_field, g_detector)
+    assert abs(g_detector - g_field) < 0.01 and 0.95 < g_detector < 1.05, (g_field, g_detector)
     rms = float(np.sqrt(np.mean((np.asarray(detector.phase) - np.asarray(field.phase)) ** 2)))
     assert rms < 0.01 * float(np.sqrt(np.mean(sim.phase**2))), rms
 
@@ -468,11 +469,14 @@ def test_a_beam_weaker_than_at_the_reference_still_converges(small_scene, small_
     factor that Re(psi)'s mean absorbs and the background plane removes. With the former
     doubling search the step followed the beam level past Nesterov's 4/(3 L): at 0.98 the
     stiffest mode's growth left a +35 rad bump in the background (phase error 0.29), at 0.95
-    it took 1717 iterations. The curvature step (solver.largest_curvature) does not move."""
+    it took 1717 iterations. The curvature step (solver.largest_curvature) does not move. Its
+    iterations stay within J's own count: the full beam stops on the data term's test at 174,
+    0.98 at 175, while at 0.95 the data term settles no sooner than J and the run stops at 360,
+    as on the full beam under J's test alone (session 67)."""
     sim, full = small_scene, small_scene_result
     assert full.converged and full.iterations < 1000  # what max_iter=1000 gives too
     res = retrieve_projection(beam * sim.sample, sim.reference, **kwargs(sim, max_iter=1000))
-    assert res.converged and res.iterations < 1.2 * full.iterations + 10, (res.iterations, full.iterations)
+    assert res.converged and res.iterations < 2.5 * full.iterations, (res.iterations, full.iterations)
     assert res.parameters["step_final"] > 0.9 * full.parameters["step_final"]  # no halving needed
     assert relative_phase_error(res, sim) < relative_phase_error(full, sim) + 0.01
     assert float(np.abs(res.phase - sim.phase).max()) < 2 * np.pi  # no bump (it was +35 rad)
@@ -767,7 +771,9 @@ def test_a_warm_start_stops_once_j_settles_at_the_error_of_a_start_from_zero():
     """The J test's jtol 3e-5 (docs/methods.md, "jtol 3e-5, judged against the truth"): a
     projection warm-started from its neighbour (0.45 deg before, its unzeroed psi, as a chain
     does) stops at 180 iterations with the phase error of the run from zero (360); with the
-    former 1e-5 it took 300 for the same error (measured: 0.0724 / 0.0709 against 0.0716)."""
+    former 1e-5 it took 300 for the same error (measured: 0.0724 / 0.0709 against 0.0716).
+    Under J's test alone: with the default ``"j-or-data"`` the data term stops this small
+    frame from zero at 176 (0.0757) and the warm start at 200 (0.0745), a tie (session 67)."""
     setup = SpeckleSetup(shape=(64, 256))
     fov_m = setup.shape[1] * setup.pixel_size_m
     phantom = default_phantom(fov_m, np.random.default_rng(2), height_m=setup.shape[0] * setup.pixel_size_m)
@@ -778,6 +784,7 @@ def test_a_warm_start_stops_once_j_settles_at_the_error_of_a_start_from_zero():
         coherence_length_x_m=setup.coherence_length_x_m,
         coherence_length_y_m=setup.coherence_length_y_m,
         fft_workers=1,
+        stationary_terms="j",
     )
     start = retrieve_projection(before.sample, before.reference, zero_background=False, **kw)
     cold = retrieve_projection(now.sample, now.reference, **kw)

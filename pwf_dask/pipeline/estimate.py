@@ -50,7 +50,9 @@ TOMO_BYTES = {"backproject": (19.6, 18.6), "gridrec": (25.9, 18.8)}
 FSC_BYTES_PER_VOXEL = 8.0 + 16.0
 #: iterations per projection assumed when none is given: the mean of the full-width scan of the
 #: paper's optics (``bench fullwidth``: 261 in session 48, chains of 8, the J test's jtol 3e-5
-#: over two windows; 254 in session 46 over one, 356 in session 45 at 1e-5, 347 in session 43)
+#: over two windows; 254 in session 46 over one, 356 in session 45 at 1e-5, 347 in session 43;
+#: J's test also on its data term, the default since session 67, stops that scan's strip
+#: where J alone did: from zero at 460, warm starts at 200 for 202-206)
 DEFAULT_ITERATIONS = 261
 #: the sample field's grid assumed when none is given: the 1.5x grid that coarse diffusers such
 #: as the paper's P3000 take (``field_upsample="auto"``); fine grains stay on the detector grid (1)

@@ -122,7 +122,8 @@ def fast_len(n: int) -> int:
     The longer sides also widen the margin, and the stop rule watches the whole grid: the
     camera frame's margin of 80 x 128 px (40 x 65 under scipy's rule) settles late and holds
     the paper preset's projection to 587 iterations against 284, for the same phase to 0.2 %
-    (session 61; docs/validation.md, "Why a grid's size moves a retrieval").
+    (session 61; docs/validation.md, "Why a grid's size moves a retrieval"), under J's test
+    alone; the default stop since session 67 also passes on J's data term and stops it at 300.
     """
     m = max(FAST_LEN_MULTIPLE, -(-int(n) // FAST_LEN_MULTIPLE) * FAST_LEN_MULTIPLE)
     while not _smooth(m):

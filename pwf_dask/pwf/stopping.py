@@ -73,9 +73,10 @@ def _stationary(history: list[float], jtol: float, window: int) -> bool:
     across the grid's periodic edges. On the camera's 2160 x 2560 frame the data term was flat
     from iteration 140 (59.16 to 4 digits) while the regularizer's fell 30.97 -> 30.43 to
     iteration 587, where the test on J let the run stop; the data term's test stops it at 300,
-    nearer the true phase (5.51 rad rms against 5.59; session 62, docs/validation.md). Not the
-    default: on small frames from zero it stops much sooner too (the 256^2 P3000 scene 174
-    iterations for 360), where warm starts then gain nothing (session 62). The data term
+    nearer the true phase (5.51 rad rms against 5.59; session 62, docs/validation.md). The
+    default since session 67: on small frames from zero it stops much sooner too (the 256^2
+    P3000 scene 174 iterations for 360) at a median error change of +1 %, while warm starts
+    there gain little over it (session 62; ``"j"``, J alone, is the former rule). The data term
     alone is no rule either: where the regularizer's fall is bought with a slight rise of the
     misfit, J settles first (a random scene: J's test at 217 iterations, the data term's at 520).
     """
@@ -152,6 +153,11 @@ class StopRule:
     (``benchmarks/results/warm_stop.md``, docs/methods.md). With the J test over two windows
     (session 47) the whole full-width scan's warm starts take 233 on average (224 over one) and
     the mean error against the true phase is 5.49 rad rms (5.51; ``bench_fullwidth_cpu.md``).
+
+    ``stationary_terms`` "j-or-data" ("j" until session 67): the J test also passes on J's data
+    term, which settles long before the padding margin's regularizer on large frames (the
+    camera frame from zero 300 iterations for 587, session 62) and on small cold P3000 frames
+    (174 for 360 at the same phase error, median +1 % over nine frames; docs/validation.md).
     """
 
     max_iter: int = 2000
@@ -162,7 +168,7 @@ class StopRule:
     jtol: float = 3e-5
     window: int = 20
     low_band_px: float = LOW_BAND_PX
-    stationary_terms: str = "j"
+    stationary_terms: str = "j-or-data"
 
 
 #: the stop rule every caller defaults to
