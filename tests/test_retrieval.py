@@ -772,8 +772,9 @@ def test_a_warm_start_stops_once_j_settles_at_the_error_of_a_start_from_zero():
     projection warm-started from its neighbour (0.45 deg before, its unzeroed psi, as a chain
     does) stops at 180 iterations with the phase error of the run from zero (360); with the
     former 1e-5 it took 300 for the same error (measured: 0.0724 / 0.0709 against 0.0716).
-    Under J's test alone: with the default ``"j-or-data"`` the data term stops this small
-    frame from zero at 176 (0.0757) and the warm start at 200 (0.0745), a tie (session 67)."""
+    Run under J's test alone (``stationary_terms="j"``): with the default ``"j-or-data"`` the
+    data term stops this small frame from zero at 176 (0.0757) and the warm start at 200
+    (0.0745), a tie (session 67)."""
     setup = SpeckleSetup(shape=(64, 256))
     fov_m = setup.shape[1] * setup.pixel_size_m
     phantom = default_phantom(fov_m, np.random.default_rng(2), height_m=setup.shape[0] * setup.pixel_size_m)
