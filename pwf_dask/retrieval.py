@@ -442,7 +442,9 @@ DRIFT_MIN_PX = 0.05
 DRIFT_MARGIN_PX = 2
 
 
-def check_solver_options(max_iter, tol, gamma, step, phase_scale=1.0, stationary_terms="j-or-data") -> None:
+def check_solver_options(
+    max_iter, tol, gamma, step, phase_scale=1.0, stationary_terms=solver.STOP_RULE.stationary_terms
+) -> None:
     """Algorithm S1's numbers, each in its range, refused in one line naming the option
     (issue #28: ``--max-iter -5`` crashed deep in the solver, ``--tol -1`` never stopped)."""
     if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
