@@ -49,11 +49,10 @@ TOMO_BYTES = {"backproject": (19.6, 18.6), "gridrec": (25.9, 18.8)}
 #: FSC: two float32 volumes, then the transform of each (complex64 half spectra) and slabs
 FSC_BYTES_PER_VOXEL = 8.0 + 16.0
 #: iterations per projection assumed when none is given: the mean of the full-width scan of the
-#: paper's optics (``bench fullwidth``: 261 in session 48, chains of 8, the J test's jtol 3e-5
-#: over two windows; 254 in session 46 over one, 356 in session 45 at 1e-5, 347 in session 43;
-#: J's test also on its data term, the default since session 67, stops that scan's strip
-#: where J alone did: from zero at 460, warm starts at 200 for 202-206)
-DEFAULT_ITERATIONS = 261
+#: paper's optics (``bench fullwidth``, chains of 8: 252 in session 69 under the default stop, J's
+#: test on J or its data term, whose warm starts stop at 222 for J alone's 233; 261 in session 48
+#: under J alone, 254 in session 46 over one window, 356 in session 45 at jtol 1e-5)
+DEFAULT_ITERATIONS = 252
 #: the sample field's grid assumed when none is given: the 1.5x grid that coarse diffusers such
 #: as the paper's P3000 take (``field_upsample="auto"``); fine grains stay on the detector grid (1)
 DEFAULT_FIELD_UPSAMPLE = 1.5
