@@ -241,6 +241,30 @@ def test_single_material_gradient_matches_finite_differences(sandpaper_on_detect
         assert fd == pytest.approx(float(np.sum(g * d)), rel=1e-4)
 
 
+def test_fused_two_loop_recursion_gives_the_textbook_direction(rng):
+    """L-BFGS's direction with its updates fused to the next inner products (issue #31) is
+    the two-loop recursion as written in Nocedal & Wright (Alg. 7.4), slope included."""
+    g = rng.normal(size=(40, 50))
+    pairs = []
+    for _ in range(4):
+        s, y = rng.normal(size=g.shape), rng.normal(size=g.shape)
+        y += 3 * s  # s.y > 0, as the fit keeps only such pairs
+        pairs.append((s, y, 1.0 / float(np.vdot(s, y))))
+    q, coeffs = g.copy(), []
+    for s, y, rho in reversed(pairs):
+        coeffs.append(rho * float(np.vdot(s, q)))
+        q -= coeffs[-1] * y
+    q *= float(np.vdot(pairs[-1][0], pairs[-1][1])) / float(np.vdot(pairs[-1][1], pairs[-1][1]))
+    for (s, y, rho), a in zip(pairs, reversed(coeffs)):
+        q += s * (a - rho * float(np.vdot(y, q)))
+    fused, slope = calibration.diffuser._two_loop_direction(g, pairs, 0.1)
+    np.testing.assert_allclose(fused, q, rtol=1e-12, atol=1e-12)
+    assert slope == pytest.approx(-float(np.vdot(g, q)), rel=1e-12)
+    first, first_slope = calibration.diffuser._two_loop_direction(g, [], 0.1)
+    np.testing.assert_allclose(first, g * 0.1 / np.abs(g).max())
+    assert first_slope == pytest.approx(-float(np.vdot(g, first)))
+
+
 def test_unknown_diffuser_model_is_refused():
     with pytest.raises(ValueError, match="diffuser_model"):
         calibration.diffuser_transmission(

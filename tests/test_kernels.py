@@ -82,6 +82,32 @@ def test_compiled_complex_exp_is_as_exact_as_numpys(phase_scale):
     assert np.isfinite(kernels.complex_exp(odd[6:])).all()
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_diffuser_fits_passes_give_the_numpy_expressions(dtype):
+    """The single-material fit's passes (calibration.diffuser): t = exp(-(kappa + i) theta)
+    bitwise NumPy's complex exp in float64, its gradient's last factor and the L-BFGS update
+    to rounding."""
+    rng = np.random.default_rng(5)
+    theta = rng.uniform(-40.0, 40.0, (67, 130)).astype(dtype)
+    t, t_generic = both(kernels.single_material_transmission, theta, 0.07)
+    exact = np.exp(complex(-0.07, -1.0) * theta.astype(np.float64))
+    assert t.dtype == np.result_type(dtype, np.complex64)
+    if dtype == np.float64:
+        assert np.array_equal(t, exact) and np.array_equal(t_generic, exact)
+    else:
+        np.testing.assert_allclose(t, exact, rtol=2e-6)
+    back = (rng.normal(size=theta.shape) + 1j * rng.normal(size=theta.shape)).astype(t.dtype)
+    g, g_generic = both(kernels.single_material_gradient, back, t, 0.07, 3.0)
+    np.testing.assert_allclose(g, 3.0 * np.real(np.conj(back) * complex(-0.07, -1.0) * t), rtol=1e-5, atol=1e-5)
+    close(g, g_generic)
+    q, x, w = (rng.normal(size=(67, 130)) for _ in range(3))
+    expected = float(np.vdot(w, q - 0.3 * x))
+    (q1, d1), (q2, d2) = both(lambda *a: (a[0], kernels.axpy_dot(*a)), q, -0.3, x, w)
+    np.testing.assert_allclose(q1, q - 0.3 * x, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(q2, q - 0.3 * x, rtol=1e-12, atol=1e-15)
+    assert d1 == pytest.approx(expected, rel=1e-12) and d2 == pytest.approx(expected, rel=1e-12)
+
+
 def test_fused_passes_follow_the_definitions(arrays):
     """Against the definitions written out (not just against the fallback)."""
     c, r = arrays

@@ -26,6 +26,13 @@ Each function names the paper's quantity it computes:
 - :func:`descent_point` phi = psi - eta d and Re<d, phi - phi_prev> (Algorithm S1, line 12,
   and the gradient restart's test),
 - :func:`momentum_point` phi + beta (phi - phi_prev) (Algorithm S1, line 14).
+
+and of the single-material diffuser's fit (:func:`pwf_dask.calibration.single_material_diffuser`,
+once per diffuser position, float64):
+
+- :func:`single_material_transmission` t_r = exp(-(kappa + i) theta_r),
+- :func:`single_material_gradient` the last factor of the fit's gradient, Re(c conj(back) t),
+- :func:`axpy_dot` an update of L-BFGS's two-loop recursion and the next inner product.
 """
 
 from __future__ import annotations
@@ -216,6 +223,35 @@ def _momentum_loop(phi, phi_prev, beta, out):
         out[i] = p + beta * (p - phi_prev[i])
 
 
+def _single_material_loop(theta, kappa, out):
+    """out = exp(-(kappa + i) theta) = exp(-kappa theta) (cos theta - i sin theta), by the same
+    exp, cos and sin as NumPy's complex exp of -(kappa + i) theta (bitwise the same result),
+    without the complex argument's array and its strided exp."""
+    for i in range(theta.size):
+        x = theta[i]
+        m = np.exp(-kappa * x)
+        out[i] = complex(m * np.cos(x), -(m * np.sin(x)))
+
+
+def _axpy_dot_loop(q, alpha, x, w):
+    total = 0.0
+    for i in range(q.size):
+        v = q[i] + alpha * x[i]
+        q[i] = v
+        total += np.float64(w[i]) * v
+    return total
+
+
+def _single_material_gradient_loop(back, t, kappa, scale, out):
+    for i in range(back.size):
+        b = back[i]
+        z = t[i]
+        # conj(b) z, then Re(c conj(b) z) with c = -(kappa + i)
+        re = b.real * z.real + b.imag * z.imag
+        im = b.real * z.imag - b.imag * z.real
+        out[i] = scale * (im - kappa * re)
+
+
 #: the loops above as CUDA kernels: ("map", in, out, body) for ``ElementwiseKernel`` or
 #: ("sum", in, out, map_expr, reduce_expr, post_map_expr, identity) for ``ReductionKernel``
 _CUDA_KERNELS = {
@@ -261,12 +297,15 @@ _LOOPS = {
     "correlation": _correlation_loop,
     "descent": _descent_loop,
     "momentum": _momentum_loop,
+    "single_material": _single_material_loop,
+    "axpy_dot": _axpy_dot_loop,
+    "single_material_gradient": _single_material_gradient_loop,
 }
 
 
 #: fast-math flags of the loops that differ from the sums' ``reassoc`` and ``contract``: the
 #: argument reduction of :func:`_polar_loop` needs its subtractions in the order written
-_FASTMATH = {"polar": {"contract"}}
+_FASTMATH = {"polar": {"contract"}, "single_material": set()}
 
 
 def _number(total, host: bool):
@@ -467,3 +506,46 @@ def momentum_point(phi, phi_prev, beta: float):
     out *= beta
     out += phi
     return out
+
+
+# --- the single-material diffuser's fit (pwf_dask.calibration.diffuser) ------------------------
+# Run once per diffuser position, in float64, but an eighth of one projection's retrieval
+# before these passes (issue #31's 10 %): NumPy's complex exp of -(kappa + i) theta alone cost
+# 1.7 FFT-times of its 1080^2 grid, and the gradient's conj(back) c t three passes.
+
+
+def single_material_transmission(theta, kappa: float):
+    """t = exp(-(kappa + i) theta), the transmission of a single-material object of phase
+    delay theta (real) and kappa = beta / delta: :func:`pwf_dask.calibration.single_material_diffuser`."""
+    if _cpu(theta) and theta.dtype in (np.float32, np.float64):
+        out = np.empty(theta.shape, dtype=np.result_type(theta.dtype, np.complex64))
+        _jit("single_material")(_flat(theta)[0], theta.dtype.type(kappa), _flat(out)[0])
+        return out
+    xp = get_array_module(theta)
+    return xp.exp(complex(-kappa, -1.0) * theta)
+
+
+def single_material_gradient(back, t, kappa: float, scale: float):
+    """scale Re(c conj(back) t), c = -(kappa + i): the derivative of a misfit in theta through
+    t = exp(c theta), given back = dL/d conj(t) up to ``scale`` (the chain rule's last factor)."""
+    if _cpu(back, t) and back.dtype == t.dtype:
+        out = np.empty(t.shape, dtype=t.real.dtype)
+        real = t.real.dtype.type
+        _jit("single_material_gradient")(*_flat(back, t), real(kappa), real(scale), _flat(out)[0])
+        return out
+    xp = get_array_module(t)
+    p = xp.conj(back) * t
+    out = p.imag - kappa * p.real
+    out *= scale
+    return out
+
+
+def axpy_dot(q, alpha: float, x, w) -> float:
+    """q += alpha x in q's memory, then <w, q> in float64, in one pass on the CPU: the two-loop
+    recursion of L-BFGS (:func:`pwf_dask.calibration.diffuser._lbfgs`, real arrays) is a chain of
+    these, each update followed by the next pair's inner product with q."""
+    if _cpu(q, x, w) and q.dtype == x.dtype == w.dtype == np.float64:
+        return float(_jit("axpy_dot")(*_flat(q), alpha, *_flat(x, w)))
+    xp = get_array_module(q)
+    q += alpha * x
+    return float(xp.vdot(w, q))
