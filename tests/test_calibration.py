@@ -201,10 +201,8 @@ def _fit(sim, ref, kappa, iterations, **extra):
         diffuser_detector_distance_m=st.diffuser_detector_distance_m,
         coherence_length_x_m=st.coherence_length_x_m,
         coherence_length_y_m=st.coherence_length_y_m,
-        pad=st.margin_px,
-        shape=sim.fine_shape,
         iterations=iterations,
-        **extra,
+        **{"pad": st.margin_px, "shape": sim.fine_shape, **extra},
     )
 
 
@@ -239,6 +237,46 @@ def test_single_material_gradient_matches_finite_differences(sandpaper_on_detect
         eps = 1e-6
         fd = (f(theta + eps * d)[0] - f(theta - eps * d)[0]) / (2 * eps)
         assert fd == pytest.approx(float(np.sum(g * d)), rel=1e-4)
+
+
+@pytest.mark.parametrize("pad", [16, 0])
+def test_fused_fit_gives_the_unfused_misfit_and_gradient(sandpaper_on_detector_grid, pad, monkeypatch):
+    """Issue #31: the fit's compiled passes give the NumPy expressions they replaced (the
+    misfit over the frame and its gradient, written out below), with and without a margin."""
+    sim, ref, _, kappa = sandpaper_on_detector_grid
+    st = sim.setup
+    captured = {}
+
+    def spy(value_and_gradient, x, iterations, **kw):
+        captured["f"] = value_and_gradient
+        return x, value_and_gradient(x)[0]
+
+    monkeypatch.setattr(calibration.diffuser, "_lbfgs", spy)
+    extra = {} if pad else {"pad": 0, "shape": None}
+    theta = _fit(sim, ref, kappa, 1, **extra).phase_delay
+    shape, (ny, nx) = theta.shape, ref.shape
+    ref_p, _ = calibration.diffuser._padded_reference(ref, pad, shape, np)
+    frame = (slice(pad, pad + ny), slice(pad, pad + nx))
+    ref_p = ref_p / ref_p[frame].mean()
+    kernel = optics.angular_spectrum_kernel(
+        shape, st.pixel_size_m, sim.wavelength, st.diffuser_detector_distance_m, np, np.complex128
+    )
+    h = optics.iotf(shape, st.pixel_size_m, st.coherence_length_x_m, st.coherence_length_y_m, np, np.float64)
+    weight = np.zeros(shape)
+    weight[frame] = 1.0 / (ny * nx)
+    c = complex(-kappa, -1.0)
+
+    def blur(a):
+        return np.fft.irfft2(np.fft.rfft2(a) * h, s=shape)
+
+    t = np.exp(c * theta)
+    v = np.fft.ifft2(np.fft.fft2(t) * kernel)
+    r = blur(np.abs(v) ** 2) - ref_p
+    back = np.fft.ifft2(np.fft.fft2(blur(2 * weight * r) * v) * np.conj(kernel))
+    f, g = captured["f"](theta)
+    assert f == pytest.approx(float(np.sum(weight * r * r)), rel=1e-12)
+    expected = 2 * np.real(np.conj(back) * c * t)
+    np.testing.assert_allclose(g, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
 
 
 def test_fused_two_loop_recursion_gives_the_textbook_direction(rng):
