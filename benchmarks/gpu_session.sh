@@ -2,8 +2,8 @@
 # The device checks of a lent or new GPU node in one pass, each step under its own time limit so
 # that one stuck step leaves the others' results: the CUDA kernels' test, the GPU tests, the
 # iteration bench, then benchmarks/gpu_checks.py's camera part (the whole frame alone and
-# 2-4 at once on one GPU), its tomo part (a 2560-wide block on the device and on the host's
-# cores), its warm part (a chain's step on the camera frame under either stop rule) and, while
+# 2-4 at once on one GPU), its tomo part (a 2560-wide block on the device, gridded and
+# back-projected, and on the host's cores), its warm part (a chain's step on the camera frame under either stop rule) and, while
 # BUDGET_S seconds last, its strip part.
 #
 #   BUDGET_S=540 bash benchmarks/gpu_session.sh OUT_DIR [STRIP_ANGLES]
@@ -32,7 +32,7 @@ timeout 170 "$py" -m pwf_dask.cli bench iteration --device gpu --out "$out/bench
 step "camera: the paper preset's whole 2160 x 2560 frame, alone and 2-4 at once"
 timeout 150 "$py" -m benchmarks.gpu_checks "$out" camera 2>&1 | tail -8 | tee -a "$log"
 step "tomo: 801 angles x 8 rows x 2560 px, device and host"
-timeout 60 "$py" -m benchmarks.gpu_checks "$out" tomo 2>&1 | tail -5 | tee -a "$log"
+timeout 60 "$py" -m benchmarks.gpu_checks "$out" tomo 2>&1 | tail -6 | tee -a "$log"
 step "warm: a chain's step on the camera frame, either stop rule"
 timeout 200 "$py" -m benchmarks.gpu_checks "$out" warm 2>&1 | tail -8 | tee -a "$log"
 left=$((${BUDGET_S:-540} - ($(date +%s) - t0)))

@@ -325,8 +325,8 @@ def add_tomo_options(p) -> None:
         "--fbp",
         default="auto",
         choices=["auto", "gridrec", "backproject"],
-        help="filtered back projection: gridrec (gridding with a non-uniform FFT, finufft/cufinufft) or "
-        "backproject (the direct reference); auto: gridrec where its NUFFT is installed",
+        help="filtered back projection: gridrec (gridding with a non-uniform FFT: finufft on the CPU, the "
+        "package's own on the GPU) or backproject (the direct reference); auto: gridrec where its NUFFT is there",
     )
 
 

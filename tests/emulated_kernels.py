@@ -41,6 +41,12 @@ PREAMBLE = """#include <cmath>
 #include <complex>
 template <typename F> using complex = std::complex<F>;
 using std::conj;
+// one thread at a time here: CUDA's atomic addition is the plain one
+template <typename T> inline T atomicAdd(T* address, T value) {
+    const T old = *address;
+    *address = old + value;
+    return old;
+}
 """
 
 #: compiled kernels, shared by the processes of a test run (a library is written under a
@@ -150,11 +156,14 @@ class ElementwiseKernel:
             shape = np.broadcast_shapes(*shapes)
             outs = [wrap(np.empty(shape, call.dtype(typ))) for _, typ, _ in self.outs]
         out_arrays = [unwrap(o) for o in outs]
-        size = out_arrays[0].size
+        # as CuPy: the loop runs over the non-raw operands, outputs first (a raw output, such as
+        # a grid written by atomic additions, takes the size of the non-raw inputs)
+        sized = [a for (raw, _, _), a in zip(self.outs, out_arrays) if not raw]
+        size = sized[0].size if sized else int(np.prod(np.broadcast_shapes(*shapes)))
         for (raw, _, name), a in zip(self.ins, call.arrays):
             if not raw and a.ndim > 0 and a.size != size:
                 raise ValueError(
-                    f"{name}: {a.shape} does not match the output {out_arrays[0].shape} (no broadcasting here)"
+                    f"{name}: {a.shape} does not match the loop's {size} elements (no broadcasting here)"
                 )
         whole = _Call(self.ins + self.outs, [*ins, *outs], unwrap)
         before, each = _declarations(self.ins + self.outs, whole, "i")

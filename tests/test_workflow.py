@@ -104,22 +104,26 @@ def test_gpu_device_gives_the_cpu_result(cupy, tiny_scan, tmp_path):
     the store the CPU writes, within float32 rounding, but for each slice's background
     quadratic: its sample-free area is a threshold on the slice, where float32 rounding can
     move a pixel across (measured: one slice of 64 whose difference was a quadratic of 3.7e-4
-    of delta's maximum, 3e-12 rms left after removing it, as on every other slice)."""
+    of delta's maximum, 3e-12 rms left after removing it, as on every other slice). The
+    default FBP, gridrec, is finufft on the host and the package's own NUFFT on the device,
+    each to 1e-4: their tomograms agree to 2.4e-4 of the maximum (session 73); the
+    backprojector is one algorithm on both, to rounding."""
     cpu, gpu = tmp_path / "cpu.zarr", tmp_path / "gpu.zarr"
     for path, device in ((cpu, "cpu"), (gpu, "gpu")):
         workflow.retrieve_scan(tiny_scan, path, device=device, **FAST)
-        # one FBP on both (auto is gridrec on the CPU, and on a GPU only with cufinufft)
-        workflow.tomo_scan(path, device=device, fbp="backproject")
-    a, b = xr.open_zarr(cpu), xr.open_zarr(gpu)
-    assert b.attrs["device"] == "gpu"
-    for name in ("phase", "attenuation", "delta", "beta"):
-        scale = float(np.abs(a[name].values).max())
-        difference = b[name].values.astype(np.float64) - a[name].values
-        if name in ("delta", "beta"):
-            quadratics = np.stack([slice_quadratic(s) for s in difference.reshape(-1, *difference.shape[-2:])])
-            assert np.abs(quadratics).max() < 1e-3 * scale, name
-            difference -= quadratics.reshape(difference.shape)
-        assert np.abs(difference).max() < 1e-4 * scale, name
+    for fbp, tolerance in (("auto", 5e-4), ("backproject", 1e-4)):
+        for path, device in ((cpu, "cpu"), (gpu, "gpu")):
+            workflow.tomo_scan(path, device=device, fbp=fbp)
+        a, b = xr.open_zarr(cpu), xr.open_zarr(gpu)
+        assert b.attrs["device"] == "gpu" and a.attrs["fbp"] == b.attrs["fbp"]
+        for name in ("phase", "attenuation", "delta", "beta"):
+            scale = float(np.abs(a[name].values).max())
+            difference = b[name].values.astype(np.float64) - a[name].values
+            if name in ("delta", "beta"):
+                quadratics = np.stack([slice_quadratic(s) for s in difference.reshape(-1, *difference.shape[-2:])])
+                assert np.abs(quadratics).max() < 1e-3 * scale, name
+                difference -= quadratics.reshape(difference.shape)
+            assert np.abs(difference).max() < (tolerance if name in ("delta", "beta") else 1e-4) * scale, name
 
 
 def slice_quadratic(s):

@@ -71,14 +71,14 @@ def ramp_filtered(sino, fft: FFT, xp=np):
     return xp.fft.irfft(spec, n=size, axis=-1)[..., edge : edge + nx]
 
 
-#: ``--fbp``: gridding (the default where finufft/cufinufft is installed) or the direct
-#: backprojector (the reference)
+#: ``--fbp``: gridding (the default: finufft on the host, :mod:`pwf_dask.tomo.nufft` on CuPy) or
+#: the direct backprojector (the reference)
 FBP_METHODS = ("auto", "gridrec", "backproject")
 
 
 def resolve_fbp(method: str, xp=np) -> str:
     """The FBP that ``method`` means for array module ``xp``: "auto" is gridrec where its
-    NUFFT is installed (finufft on the CPU, cufinufft on the GPU), else the backprojector."""
+    NUFFT is there (finufft on the CPU; on the GPU always, the package's own), else the backprojector."""
     if method not in FBP_METHODS:
         raise ValueError(f"fbp must be one of {', '.join(FBP_METHODS)}, got {method!r}")
     if method != "auto":
