@@ -143,7 +143,8 @@ def nufft2d1(x, y, c, shape: tuple[int, int], xp, eps: float = 1e-4, upsampling:
     for start in range(0, n_trans, batch):
         part = c[start : start + batch]
         grid = xp.zeros((part.shape[0], *fine), dtype=xp.complex64)
-        spread(part, cell0, frac0, cell1, frac1, npts, fine[0], fine[1], width, beta, grid.view(xp.float32))
+        # flat: a raw argument is indexed by its flat index
+        spread(part, cell0, frac0, cell1, frac1, npts, fine[0], fine[1], width, beta, grid.view(xp.float32).ravel())
         # sum_l grid[l] exp(+2 pi i k l / n) is n times the inverse FFT
         spectrum = xp.fft.ifft2(grid, axes=(-2, -1))
         del grid
