@@ -122,7 +122,8 @@ def test_the_device_nufft_kernel_follows_finufft_rule():
 def test_the_device_nufft_gives_finufft(cupy, shape):
     """Issue #31: the device's own type-1 NUFFT (spreading kernel, FFT, deconvolution) gives
     finufft's sums to its requested 1e-4 (finufft's own single precision reads 0.8-1e-4 here),
-    points on the period's edges included, for each transform of a batch."""
+    points on the period's edges included, for each transform of a batch; its real part alone
+    (gridding FBP's) as the complex sums' real part."""
     if not hasattr(cupy, "ElementwiseKernel"):
         pytest.skip("no C++ compiler for the emulator's kernels")
     import finufft
@@ -139,6 +140,9 @@ def test_the_device_nufft_gives_finufft(cupy, shape):
     error = np.linalg.norm(cupy.asnumpy(ours) - exact) / np.linalg.norm(exact)
     assert error < 2e-4, error
     assert np.linalg.norm(cupy.asnumpy(ours[1]) - exact[1]) / np.linalg.norm(exact[1]) < 2e-4
+    real = nufft.nufft2d1(x, y, cupy.asarray(c), shape, cupy, eps=1e-4, real=True)
+    assert real.dtype == np.float32
+    np.testing.assert_array_equal(cupy.asnumpy(real), cupy.asnumpy(ours).real)
 
 
 @pytest.mark.gpu

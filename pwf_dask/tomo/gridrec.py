@@ -84,7 +84,6 @@ def gridrec_back_projection(
     c = xp.ascontiguousarray(spectrum.transpose(1, 0, 2)).reshape(nr, -1)
     del spectrum
     out = _nufft2d1(xp, x, y, c, (n_out, n_out), fft.workers)
-    out = out.real.astype(xp.float32)
     out /= pixel_size_m
     return out
 
@@ -98,12 +97,13 @@ def _rfft(xp, q, m: int, fft: FFT):
 
 
 def _nufft2d1(xp, x, y, c, shape, threads: int | None = None):
-    """Type-1 2-D NUFFT of ``c`` (n_trans, points) at points (x, y), isign +1, single precision,
-    on ``threads`` CPU threads (the task's FFT budget; None: every core)."""
+    """The real part (float32) of the type-1 2-D NUFFT of ``c`` (n_trans, points) at points
+    (x, y), isign +1, single precision, on ``threads`` CPU threads (the task's FFT budget;
+    None: every core)."""
     if xp is np:
         import finufft
 
-        return finufft.nufft2d1(
+        f = finufft.nufft2d1(
             x.astype(np.float32),
             y.astype(np.float32),
             c,
@@ -114,9 +114,10 @@ def _nufft2d1(xp, x, y, c, shape, threads: int | None = None):
             upsampfac=NUFFT_UPSAMPLING,
             showwarn=0,  # its "more threads than physical cores" note: the budget is the caller's
         )
+        return f.real.astype(np.float32)
     from pwf_dask.tomo import nufft
 
-    return nufft.nufft2d1(x, y, c, shape, xp, eps=NUFFT_EPS, upsampling=DEVICE_NUFFT_UPSAMPLING)
+    return nufft.nufft2d1(x, y, c, shape, xp, eps=NUFFT_EPS, upsampling=DEVICE_NUFFT_UPSAMPLING, real=True)
 
 
 def _threads() -> int:

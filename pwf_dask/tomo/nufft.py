@@ -124,10 +124,11 @@ def _modes(n_modes: int, n_fine: int) -> np.ndarray:
     return (np.arange(n_modes) - n_modes // 2) % n_fine
 
 
-def nufft2d1(x, y, c, shape: tuple[int, int], xp, eps: float = 1e-4, upsampling: float = 2.0):
+def nufft2d1(x, y, c, shape: tuple[int, int], xp, eps: float = 1e-4, upsampling: float = 2.0, real: bool = False):
     """Type-1 NUFFT of strengths ``c`` (n_trans, points; complex64, on ``xp``'s device) at
     points (``x`` along axis 0, ``y`` along axis 1; radians, host arrays): (n_trans, *shape)
-    complex64, finufft's ``nufft2d1(x, y, c, shape, isign=1)`` to about ``eps`` of its l2 norm."""
+    complex64, finufft's ``nufft2d1(x, y, c, shape, isign=1)`` to about ``eps`` of its l2 norm;
+    ``real``: its real part alone, float32 (what gridding FBP keeps: half the device memory)."""
     width, beta = kernel_parameters(eps, upsampling)
     c = xp.ascontiguousarray(xp.asarray(c, dtype=xp.complex64).reshape(-1, np.size(x)))
     n_trans, npts = c.shape
@@ -137,7 +138,7 @@ def nufft2d1(x, y, c, shape: tuple[int, int], xp, eps: float = 1e-4, upsampling:
         (1.0 / np.outer(*(kernel_transform(n, m, width, beta) for n, m in zip(shape, fine)))).astype(np.float32)
     )
     rows0, rows1 = (xp.asarray(_modes(n, m)) for n, m in zip(shape, fine))
-    out = xp.empty((n_trans, *shape), dtype=xp.complex64)
+    out = xp.empty((n_trans, *shape), dtype=xp.float32 if real else xp.complex64)
     batch = max(1, MAX_GRID_ELEMENTS // (fine[0] * fine[1]))
     spread = _spread_kernel(xp)
     for start in range(0, n_trans, batch):
@@ -150,5 +151,5 @@ def nufft2d1(x, y, c, shape: tuple[int, int], xp, eps: float = 1e-4, upsampling:
         del grid
         modes = spectrum[:, rows0][:, :, rows1]
         modes *= deconvolve * float(fine[0] * fine[1])
-        out[start : start + part.shape[0]] = modes
+        out[start : start + part.shape[0]] = modes.real if real else modes
     return out
