@@ -162,9 +162,7 @@ class ElementwiseKernel:
         size = sized[0].size if sized else int(np.prod(np.broadcast_shapes(*shapes)))
         for (raw, _, name), a in zip(self.ins, call.arrays):
             if not raw and a.ndim > 0 and a.size != size:
-                raise ValueError(
-                    f"{name}: {a.shape} does not match the loop's {size} elements (no broadcasting here)"
-                )
+                raise ValueError(f"{name}: {a.shape} does not match the loop's {size} elements (no broadcasting here)")
         whole = _Call(self.ins + self.outs, [*ins, *outs], unwrap)
         before, each = _declarations(self.ins + self.outs, whole, "i")
         source = (
