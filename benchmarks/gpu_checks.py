@@ -398,6 +398,7 @@ def tomo_rows(cp, rows: int = 8, angles: int = 801, width: int = 2560) -> list[d
             )
         )
         print(json.dumps(out[-1]), flush=True)
+    out += background_rows(cp, results[("host", "gridrec")])
     host, device = results[("host", "gridrec")], results[("device", "backproject")]
     agreement = np.sqrt(np.mean((device[:, inside] - host[:, inside]) ** 2) / np.mean(host[:, inside] ** 2))
     kernel = results[("device", "backproject-kernel")]
@@ -412,6 +413,29 @@ def tomo_rows(cp, rows: int = 8, angles: int = 801, width: int = 2560) -> list[d
     )
     print(json.dumps(out[-1]), flush=True)
     return out
+
+
+def background_rows(cp, slices) -> list[dict]:
+    """Each tomogram slice's quadratic background fit (``tomography.remove_background``, part of
+    every tomo task) on the device and on the host: seconds a slice, a position's worth."""
+    from pwf_dask.tomo import tomography
+
+    rows = []
+    for where, xp in (("device", cp), ("host", np)):
+        block = xp.asarray(slices)
+        tomography.remove_background(block[:1])  # compiled, planned
+        cp.cuda.Stream.null.synchronize()
+        t0 = time.perf_counter()
+        tomography.remove_background(block)
+        cp.cuda.Stream.null.synchronize()
+        seconds = time.perf_counter() - t0
+        n = slices.shape[0]
+        rows.append(
+            dict(where=where, stage="background", rows=n, width_px=slices.shape[-1], seconds_per_slice=seconds / n)
+            | dict(position_s=seconds / n * 2160 * 2)
+        )
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
 
 
 def main(argv=None) -> None:
