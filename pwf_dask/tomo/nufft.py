@@ -134,9 +134,9 @@ def nufft2d1(x, y, c, shape: tuple[int, int], xp, eps: float = 1e-4, upsampling:
     n_trans, npts = c.shape
     fine = tuple(fine_grid_length(n, upsampling) for n in shape)
     (cell0, frac0), (cell1, frac1) = _cells(x, fine[0], xp), _cells(y, fine[1], xp)
-    deconvolve = xp.asarray(
-        (1.0 / np.outer(*(kernel_transform(n, m, width, beta) for n, m in zip(shape, fine)))).astype(np.float32)
-    )
+    # sum_l grid[l] exp(+2 pi i k l / n) is n times the inverse FFT: n over the kernel's transform
+    phi_hat = np.outer(*(kernel_transform(n, m, width, beta) for n, m in zip(shape, fine)))
+    deconvolve = xp.asarray((fine[0] * fine[1] / phi_hat).astype(np.float32))
     rows0, rows1 = (xp.asarray(_modes(n, m)) for n, m in zip(shape, fine))
     out = xp.empty((n_trans, *shape), dtype=xp.float32 if real else xp.complex64)
     batch = max(1, MAX_GRID_ELEMENTS // (fine[0] * fine[1]))
@@ -146,10 +146,9 @@ def nufft2d1(x, y, c, shape: tuple[int, int], xp, eps: float = 1e-4, upsampling:
         grid = xp.zeros((part.shape[0], *fine), dtype=xp.complex64)
         # flat: a raw argument is indexed by its flat index
         spread(part, cell0, frac0, cell1, frac1, npts, fine[0], fine[1], width, beta, grid.view(xp.float32).ravel())
-        # sum_l grid[l] exp(+2 pi i k l / n) is n times the inverse FFT
         spectrum = xp.fft.ifft2(grid, axes=(-2, -1))
         del grid
         modes = spectrum[:, rows0][:, :, rows1]
-        modes *= deconvolve * float(fine[0] * fine[1])
+        modes *= deconvolve
         out[start : start + part.shape[0]] = modes.real if real else modes
     return out
