@@ -32,7 +32,7 @@ timeout 170 "$py" -m pwf_dask.cli bench iteration --device gpu --out "$out/bench
 step "camera: the paper preset's whole 2160 x 2560 frame, alone and 2-4 at once"
 timeout 150 "$py" -m benchmarks.gpu_checks "$out" camera 2>&1 | tail -8 | tee -a "$log"
 step "tomo: 801 angles x 8 rows x 2560 px, device and host"
-timeout 60 "$py" -m benchmarks.gpu_checks "$out" tomo 2>&1 | tail -8 | tee -a "$log"
+timeout 90 "$py" -m benchmarks.gpu_checks "$out" tomo 2>&1 | tail -8 | tee -a "$log"
 step "warm: a chain's step on the camera frame, either stop rule"
 timeout 200 "$py" -m benchmarks.gpu_checks "$out" warm 2>&1 | tail -8 | tee -a "$log"
 left=$((${BUDGET_S:-540} - ($(date +%s) - t0)))
