@@ -40,6 +40,7 @@ class RetrievalOptions:
     patience: int = STOP_RULE.patience
     rtol: float = STOP_RULE.rtol
     jtol: float = STOP_RULE.jtol
+    low_band_atol_rad: float = STOP_RULE.low_band_atol_rad
     stationary_terms: str = STOP_RULE.stationary_terms
     step: float = DEFAULT_STEP
     step_search: bool = True

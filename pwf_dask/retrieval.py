@@ -443,13 +443,24 @@ DRIFT_MARGIN_PX = 2
 
 
 def check_solver_options(
-    max_iter, tol, gamma, step, phase_scale=1.0, stationary_terms=solver.STOP_RULE.stationary_terms
+    max_iter,
+    tol,
+    gamma,
+    step,
+    phase_scale=1.0,
+    stationary_terms=solver.STOP_RULE.stationary_terms,
+    low_band_atol_rad=solver.STOP_RULE.low_band_atol_rad,
 ) -> None:
     """Algorithm S1's numbers, each in its range, refused in one line naming the option
     (issue #28: ``--max-iter -5`` crashed deep in the solver, ``--tol -1`` never stopped)."""
     if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
         raise ValueError(f"max_iter must be a whole number >= 1, got {max_iter!r}")
-    checks = (("tol", tol, 0.0, True), ("gamma", gamma, 0.0, True), ("step", step, 0.0, False))
+    checks = (
+        ("tol", tol, 0.0, True),
+        ("gamma", gamma, 0.0, True),
+        ("step", step, 0.0, False),
+        ("low_band_atol_rad", low_band_atol_rad, 0.0, True),
+    )
     for name, value, low, inclusive in checks:
         v = float(value)
         if not math.isfinite(v) or v < low or (v == low and not inclusive):
@@ -540,9 +551,12 @@ def retrieve_projection(
     method : {"pwf", "umpa", "lcs", "gf", "mist"}
         PWF, or a speckle-tracking baseline (:func:`retrieve_tracking`; ``tracking_options``,
         ``sample_material`` and ``sample_delta_over_beta`` (MIST) go to it).
-    max_iter, tol, min_iter, patience, rtol, jtol, stationary_terms : stop rule
+    max_iter, tol, min_iter, patience, rtol, jtol, low_band_atol_rad, stationary_terms : stop rule
         :class:`pwf_dask.pwf.solver.StopRule`: ``tol`` is 1 - the field correlation of
         successive iterates (the paper's 1 - 10^-0.00001), ``tol=0`` runs ``max_iter``;
+        ``low_band_atol_rad`` (0: off): the phase's wide structure is not settled while it
+        moved that much (rms, rad) over the last window (0.05 holds a deep rod's cold crop that
+        stops early otherwise; docs/user-guide.md);
         ``stationary_terms="j-or-data"`` (the default) lets J's data term pass the J test too
         (large frames whose padding margin settles late: the camera frame 300 iterations for
         587); ``"j"`` watches J alone (the rule before session 67).
@@ -1124,7 +1138,9 @@ def _checked_pwf_options(
     optics.check_plausible_geometry(
         coherence_length_x_m=opts.coherence_length_x_m, coherence_length_y_m=opts.coherence_length_y_m
     )
-    check_solver_options(opts.max_iter, opts.tol, opts.gamma, opts.step, opts.phase_scale, opts.stationary_terms)
+    check_solver_options(
+        opts.max_iter, opts.tol, opts.gamma, opts.step, opts.phase_scale, opts.stationary_terms, opts.low_band_atol_rad
+    )
     alpha = parse_alpha(opts.alpha)
     _check_start(opts.initial, image_shape, opts.restart)
     check_diffuser_drift(opts.diffuser_drift)
@@ -1226,6 +1242,7 @@ def _solver_run(y_full, opts: RetrievalOptions):
         restart=opts.restart,
         rtol=opts.rtol,
         jtol=opts.jtol,
+        low_band_atol_rad=opts.low_band_atol_rad,
         stationary_terms=opts.stationary_terms,
     )
 
@@ -1313,6 +1330,7 @@ def _parameters(
         "patience": opts.patience,
         "rtol": opts.rtol,
         "jtol": opts.jtol,
+        "low_band_atol_rad": opts.low_band_atol_rad,
         "stationary_terms": opts.stationary_terms,
         "preconditioner": opts.preconditioner,
         "precision": opts.precision,

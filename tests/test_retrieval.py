@@ -323,6 +323,7 @@ def test_a_known_upstream_distance_lowers_the_error(seed):
         (dict(gamma=-1.0), "gamma must be"),
         (dict(step=0.0), "step must be"),
         (dict(phase_scale=0.0), "phase_scale must be"),
+        (dict(low_band_atol_rad=-0.05), "low_band_atol_rad must be >= 0"),
         (dict(alpha="foo"), "alpha must be"),
         (dict(field_upsample="fine"), "field_upsample"),
         (dict(sample_field_grid="fine"), "sample_field_grid must be one of field, detector, got 'fine'"),

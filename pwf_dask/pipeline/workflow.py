@@ -613,6 +613,7 @@ def _checked_scan_options(
         step,
         options.get("phase_scale", DEFAULTS.phase_scale),
         options.get("stationary_terms", DEFAULTS.stationary_terms),
+        options.get("low_band_atol_rad", DEFAULTS.low_band_atol_rad),
     )
     if "field_upsample" in options:
         options["field_upsample"] = check_field_upsample(options["field_upsample"])

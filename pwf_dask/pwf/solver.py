@@ -269,7 +269,7 @@ class _Run:
         if not stationary or self.low_pass is None:
             return stationary
         if self.low_band_still is None:  # asked once per snapshot: its sums cost a round trip
-            self.low_band_still = _low_band_settled(self.low_band, rule.rtol, self.xp)
+            self.low_band_still = _low_band_settled(self.low_band, rule.rtol, self.xp, rule.low_band_atol_rad)
         return self.low_band_still
 
     def extrapolate(self, psi, d, trial: _Trial | None = None):
@@ -309,6 +309,7 @@ def pwf(
     jtol: float = STOP_RULE.jtol,
     window: int = STOP_RULE.window,
     low_band_px: float = STOP_RULE.low_band_px,
+    low_band_atol_rad: float = STOP_RULE.low_band_atol_rad,
     stationary_terms: str = STOP_RULE.stationary_terms,
     psi0=None,
     step_search: bool = True,
@@ -332,7 +333,8 @@ def pwf(
     L / (4 N_t)): its best value changed by less than ``jtol`` (relative) from one window to the
     next over each of the last two windows (:func:`_stationary`; ``jtol`` = 0 disables it)
     while the phase's structure wider than ``low_band_px`` has settled as well
-    (:func:`_low_band_settled`, ``low_band_px`` = 0 leaves it out).
+    (:func:`_low_band_settled`, ``low_band_px`` = 0 leaves it out; not while its last window
+    moved ``low_band_atol_rad`` rms or more, 0 drops that floor).
 
     Step: ``step`` is eta of Algorithm S1; with ``step_search`` it is in units of 1/L, L the
     largest curvature in the metric at psi_0 (:func:`largest_curvature`, power iteration), so
@@ -377,6 +379,7 @@ def pwf(
         jtol=jtol,
         window=window,
         low_band_px=low_band_px,
+        low_band_atol_rad=low_band_atol_rad,
         stationary_terms=stationary_terms,
     )
     # J is summed in float64 from residuals rounded to the working precision: a rise
