@@ -174,7 +174,8 @@ class StopRule:
     last window moved that much (0.05 rad: a deep rod's cold crop that the default stops at 205
     iterations, 7.09 rad rms off, runs to 400 and 4.90; :func:`_low_band_settled`). Not the
     default: the whole camera frame from zero then takes 658 iterations for 300 at the same phase
-    (gain 0.9495, 5.516 rad against 0.949, 5.52), its padding margin's slow settling counted again.
+    (gain 0.9495, 5.516 rad against 0.949, 5.52): its wide structure goes on moving from 300 to
+    658 without nearing the truth (the measured frame alone, margin left out, reads the same).
 
     ``stationary_terms`` "j-or-data" ("j" until session 67): the J test also passes on J's data
     term, which settles long before the padding margin's regularizer on large frames (the
