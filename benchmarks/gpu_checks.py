@@ -430,10 +430,11 @@ def background_rows(cp, slices) -> list[dict]:
         cp.cuda.Stream.null.synchronize()
         seconds = time.perf_counter() - t0
         n = slices.shape[0]
+        per_slice = seconds / n
         rows.append(
-            dict(where=where, stage="background", rows=n, width_px=slices.shape[-1], seconds_per_slice=seconds / n)
-            | dict(position_s=seconds / n * 2160 * 2)
+            dict(where=where, stage="background", rows=n, width_px=slices.shape[-1], seconds_per_slice=per_slice)
         )
+        rows[-1]["position_s"] = per_slice * 2160 * 2  # phase and attenuation, 2160 rows
         print(json.dumps(rows[-1]), flush=True)
     return rows
 
