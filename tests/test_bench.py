@@ -160,6 +160,33 @@ def test_coarse_start_bins_and_interpolates_on_the_detectors_pixel_centres():
     assert odd.shape == (63, 95) and np.allclose(odd[1:-2, 1:-2], odd_plane[1:-2, 1:-2], atol=1e-12)
 
 
+def test_cylinder_measures_read_a_lost_rim_step_and_a_scaled_phase():
+    """The cylinder sweep's measures (benchmarks/cylinder_rows.py) on a cylinder's exact
+    phase: the truth itself reads gain 1 and no step; scaled by 0.9, gain 0.9; with the
+    left rim's step lost (everything left of the cylinder 1.5 rad down, the inside right),
+    the sample-free level difference reads -1.5 rad and the gain is counted after the
+    median background level is taken off, as the sweep states."""
+    import numpy as np
+
+    from benchmarks.cylinder_rows import cylinder_measures
+
+    x = np.arange(128) - 63.5
+    chord = np.sqrt(np.clip(46.0**2 - x**2, 0, None))
+    truth = np.tile(-8.0 * chord / chord.max(), (48, 1))
+    exact = cylinder_measures(truth, truth)
+    assert exact["gain"] == pytest.approx(1.0) and exact["left_minus_right_rad"] == 0.0
+    assert exact["band_gain_spread"] == pytest.approx(0.0, abs=1e-12)
+    assert cylinder_measures(0.9 * truth, truth)["gain"] == pytest.approx(0.9)
+    lost = truth.copy()
+    lost[:, x < -46] -= 1.5
+    m = cylinder_measures(lost, truth)
+    assert m["left_minus_right_rad"] == pytest.approx(-1.5)
+    free = truth > -1e-3
+    level = np.median(lost[free])
+    inside = truth < -0.3
+    assert m["gain"] == pytest.approx(np.sum((lost - level)[inside] * truth[inside]) / np.sum(truth[inside] ** 2))
+
+
 @pytest.mark.gpu
 def test_gpu_checks_warm_part_starts_the_second_frame_from_the_first(cupy):
     """``gpu_checks OUT warm`` on a small frame: frame 0 from zero (calibrating, then with its
