@@ -15,7 +15,7 @@ is 0 on both sides).
     python -m benchmarks.cylinder_rows [--out benchmarks/results] [--rows 48 96 192 384 768]
     python -m benchmarks.cylinder_rows --why [--out benchmarks/results]
 
-Writes ``cylinder_rows.md`` and ``.csv`` (about 20 min on 2 cores). ``--why`` takes two of the
+Writes ``cylinder_rows.md`` and ``.csv`` (about 25 min on 2 cores). ``--why`` takes two of the
 sweep's low draws apart instead (``cylinder_rows_why.md`` and ``.csv``, about 5 min): the
 simulator on the detector grid (no sub-pixel structure, so that the true diffuser is a model
 PWF can hold) with noise and calibrated lengths as in the sweep, then without noise and with
@@ -34,7 +34,7 @@ import time
 import numpy as np
 
 from benchmarks.reporting import device_name, write_rows_csv
-from pwf_dask import calibration
+from benchmarks.stability import calibrated_lengths
 from pwf_dask.retrieval import retrieve_projection
 from pwf_dask.simulation import SpeckleSetup, SpeckleSimulator, scan_phantom
 
@@ -82,7 +82,7 @@ def scene_rows(rows: int, grain: str, methods: dict, seed: int = 0) -> list[dict
         return (rng.poisson(np.clip(intensity, 0, None) * setup.photons) / setup.photons).astype(np.float32)
 
     reference = detect(sim.intensity(None, t))
-    cx, cy = calibration.coherence_lengths(reference, p)
+    lengths = calibrated_lengths(reference, setup)
     views = []
     for angle in ANGLES_DEG:
         field_, psi = sim.sample_field(phantom, angle)
@@ -92,9 +92,7 @@ def scene_rows(rows: int, grain: str, methods: dict, seed: int = 0) -> list[dict
         t0 = time.perf_counter()
         per = []
         for sample, truth in views:
-            res = retrieve_projection(
-                sample, reference, coherence_length_x_m=cx, coherence_length_y_m=cy, **setup.geometry(), **opts
-            )
+            res = retrieve_projection(sample, reference, **lengths, **setup.geometry(), **opts)
             per.append({**cylinder_measures(np.asarray(res.phase), truth), "iterations": res.iterations})
         row = {
             "rows": rows,
@@ -107,8 +105,8 @@ def scene_rows(rows: int, grain: str, methods: dict, seed: int = 0) -> list[dict
             "band_gain_spread": float(np.mean([m["band_gain_spread"] for m in per])),
             "left_minus_right_rad": float(np.mean([abs(m["left_minus_right_rad"]) for m in per])),
             "cylinder_depth_rad": float(-min(v[1].min() for v in views)),
-            "coherence_x_um": cx * 1e6,
-            "coherence_y_um": cy * 1e6,
+            "coherence_x_um": lengths["coherence_length_x_m"] * 1e6,
+            "coherence_y_um": lengths["coherence_length_y_m"] * 1e6,
             "iterations": float(np.mean([m["iterations"] for m in per])),
             "wall_s": time.perf_counter() - t0,
         }
@@ -144,7 +142,7 @@ def why_rows(rows: int, grain: str, seed: int) -> list[dict]:
     true_lengths = dict(
         coherence_length_x_m=setup.coherence_length_x_m, coherence_length_y_m=setup.coherence_length_y_m
     )
-    cx, cy = calibration.coherence_lengths(noisy[0], p)
+    calibrated = calibrated_lengths(noisy[0], setup)
     pad, grid = diffuser_grid(
         shape,
         energy_eV=setup.energy_eV,
@@ -158,9 +156,9 @@ def why_rows(rows: int, grain: str, seed: int) -> list[dict]:
     exact = dict(diffuser=true_t, field_upsample=1, max_iter=3000, **true_lengths)
     start = sim._bin(psi.real) + 1j * truth
     cases = [
-        ("noisy, calibrated lengths", noisy, dict(coherence_length_x_m=cx, coherence_length_y_m=cy)),
+        ("noisy, calibrated lengths", noisy, calibrated),
         ("noisy, true lengths", noisy, true_lengths),
-        ("noise-free, calibrated lengths", clean, dict(coherence_length_x_m=cx, coherence_length_y_m=cy)),
+        ("noise-free, calibrated lengths", clean, calibrated),
         ("noise-free, true lengths", clean, true_lengths),
     ] + [
         (

@@ -22,7 +22,7 @@
 #   frame_size_bead_grains.* ~20 min: the bead scene at 256^2-1024^2 on more P3000 draws, 1.2 and 4.5 um grains
 #   frame_size_camera.* ~11 min: the paper preset on the camera's whole 2160 x 2560 frame and row crops
 #   edge_step.*        ~14 min: where the camera frame's 5 % of phase goes (start, alpha, prior)
-#   cylinder_rows.*    ~20 min: a wide weak cylinder's phase at 48-768 rows, three grains, three draws
+#   cylinder_rows.*    ~25 min: a wide weak cylinder's phase at 48-768 rows, three grains, three draws
 #                      (cylinder_rows_why.*: --why, ~5 min: two low draws taken apart, noise to regularizer)
 #   coherence_sensitivity.* ~12 min: phase gain against coherence-length error (0.7-1.3x), every other default
 #   coarse_start.*     ~25 min: a coarse-to-fine start (2x2 binned solve) against zero and the true psi

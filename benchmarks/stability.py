@@ -174,6 +174,25 @@ class Scene:
         return noisy(self.clean_samples[:k]), noisy(self.clean_references[:k])
 
 
+def calibrated_lengths(reference, setup: SpeckleSetup) -> dict:
+    """The coherence options :func:`retrieve_projection` would calibrate for itself from
+    ``reference`` (the template fit at the set-up's geometry, and whether its lengths include
+    the pixel's blur), for benchmarks that calibrate once and pass them to several runs."""
+    from pwf_dask import calibration
+
+    fit = calibration.fit_coherence_lengths(
+        reference,
+        setup.pixel_size_m,
+        energy_eV=setup.energy_eV,
+        diffuser_detector_distance_m=setup.diffuser_detector_distance_m + setup.diffuser_upstream_m,
+    )
+    return {
+        "coherence_length_x_m": fit.x_m,
+        "coherence_length_y_m": fit.y_m,
+        "coherence_includes_pixel_blur": fit.includes_pixel_blur,
+    }
+
+
 def bead_regions(sim: SpeckleSimulator, phantom: Phantom, phase_factor: float = 1.0, angle_deg: float = 0.0):
     """(inner, ring) masks of the largest bead's projection at ``angle_deg``, or None without beads.
 

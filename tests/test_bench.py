@@ -187,6 +187,31 @@ def test_cylinder_measures_read_a_lost_rim_step_and_a_scaled_phase():
     assert m["gain"] == pytest.approx(np.sum((lost - level)[inside] * truth[inside]) / np.sum(truth[inside] ** 2))
 
 
+def test_benchmarks_calibrate_the_lengths_a_run_calibrates():
+    """Benchmarks that calibrate once for several runs (bead_contrast, cylinder_rows) pass the
+    lengths :func:`retrieve_projection` would calibrate itself, and say that they exclude the
+    pixel's blur as the template fit's do (before session 74 bead_contrast took the Gaussian
+    alone, 10-20 % long with that blur counted twice): the same lengths and the same phase."""
+    import numpy as np
+
+    from benchmarks.stability import calibrated_lengths
+    from pwf_dask.retrieval import retrieve_projection
+    from pwf_dask.simulation import SpeckleSetup, simulate_projection
+
+    setup = SpeckleSetup(shape=(64, 64))
+    sim = simulate_projection(setup, seed=1)
+    lengths = calibrated_lengths(sim.reference, setup)
+    itself = retrieve_projection(sim.sample, sim.reference, max_iter=30, tol=0, **setup.geometry())
+    given = retrieve_projection(sim.sample, sim.reference, max_iter=30, tol=0, **setup.geometry(), **lengths)
+    assert lengths["coherence_includes_pixel_blur"] is False
+    assert (itself.coherence_length_x_m, itself.coherence_length_y_m) == (
+        lengths["coherence_length_x_m"],
+        lengths["coherence_length_y_m"],
+    )
+    assert abs(lengths["coherence_length_x_m"] / setup.coherence_length_x_m - 1) < 0.1
+    np.testing.assert_array_equal(np.asarray(given.phase), np.asarray(itself.phase))
+
+
 @pytest.mark.gpu
 def test_gpu_checks_warm_part_starts_the_second_frame_from_the_first(cupy):
     """``gpu_checks OUT warm`` on a small frame: frame 0 from zero (calibrating, then with its

@@ -56,11 +56,11 @@ def test_cylinder_delta_within_20_percent(demo_recon):
     at the two positions with the default alpha. On all 61 angles: -14.9 % / -9.2 % (-16.0 % /
     -7.8 % at 300 iterations); at 300 iterations with the paper's alpha -11.6 % / -2.6 %, and
     -10.8 % / -2.2 % with the true coherence lengths too; -2 % to -4 % on the finer pre-P3000
-    sandpaper. The cylinder alone in single projections reads 0.69-1.14 of its phase over three
-    draws at 48-768 rows and three grains, each draw's angles alike (the draw, not the frame's
-    height: benchmarks/results/cylinder_rows.md), and with noise-free images, the true lengths
-    and the true diffuser the default alpha still holds it at 0.83 / 0.92 on two low draws
-    (cylinder_rows_why.md: the regularizer's bias). Open in #27."""
+    sandpaper. The cylinder alone in single projections reads 0.923 of its phase in the median
+    of 45 draws at 48-768 rows and three grains (0.71-1.08 by the draw, each draw's angles
+    alike; no trend in height: benchmarks/results/cylinder_rows.md), and with noise-free images,
+    the true lengths and the true diffuser the default alpha still holds it at 0.83 / 0.92 on
+    two low draws (cylinder_rows_why.md: the regularizer's bias). Open in #27."""
     dc, _ = delta_beta("cellulose", demo_recon.attrs["energy_eV"])
     ph = phantom_from_json(demo_recon.attrs["simulation_phantom"])
     V, U = np.meshgrid(demo_recon.v.values, demo_recon.u.values, indexing="ij")
