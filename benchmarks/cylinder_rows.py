@@ -15,7 +15,8 @@ is 0 on both sides).
     python -m benchmarks.cylinder_rows [--out benchmarks/results] [--rows 48 96 192 384 768]
     python -m benchmarks.cylinder_rows --why [--out benchmarks/results]
 
-Writes ``cylinder_rows.md`` and ``.csv`` (about 25 min on 2 cores). ``--why`` takes two of the
+Writes ``cylinder_rows.md`` and ``.csv`` (about 25 min on 2 cores); with ``--alphas`` (more PWF
+runs, one per alpha) ``cylinder_rows_alphas.md`` and ``.csv``. ``--why`` takes two of the
 sweep's low draws apart instead (``cylinder_rows_why.md`` and ``.csv``, about 5 min): the
 simulator on the detector grid (no sub-pixel structure, so that the true diffuser is a model
 PWF can hold) with noise and calibrated lengths as in the sweep, then without noise and with
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 import time
 
 import numpy as np
@@ -216,6 +218,7 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--grains", nargs="+", default=list(GRAINS), choices=list(GRAINS))
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
     ap.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
+    ap.add_argument("--alphas", nargs="+", default=[], help="more PWF runs, one per alpha (e.g. 0.05+0.02j)")
     ap.add_argument("--why", action="store_true", help="take two low draws apart instead of the sweep")
     args = ap.parse_args(argv)
     if args.why:
@@ -224,20 +227,27 @@ def main(argv=None) -> list[dict]:
         (out / "cylinder_rows_why.md").write_text("\n".join(why_lines(rows)) + "\n")
         return rows
     methods = {m: METHODS[m] for m in args.methods}
+    methods.update({f"pwf, alpha {a}": {"alpha": a} for a in args.alphas})
     scenes = [(n, grain, seed) for grain in args.grains for n in args.rows for seed in args.seeds]
     rows = [r for n, grain, seed in scenes for r in scene_rows(n, grain, methods, seed)]
-    out = write_rows_csv(args.out, "cylinder_rows.csv", rows)
-    (out / "cylinder_rows.md").write_text("\n".join(summary_lines(rows, args.seeds)) + "\n")
+    # a run with more alphas writes files of its own beside the sweep's
+    name = "cylinder_rows_alphas" if args.alphas else "cylinder_rows"
+    given = list(sys.argv[1:] if argv is None else argv)
+    if "--out" in given:  # where the files went is not how they were made
+        del given[given.index("--out") : given.index("--out") + 2]
+    command = " ".join(["python -m benchmarks.cylinder_rows", *given])
+    out = write_rows_csv(args.out, f"{name}.csv", rows)
+    (out / f"{name}.md").write_text("\n".join(summary_lines(rows, args.seeds, command)) + "\n")
     return rows
 
 
-def summary_lines(rows: list[dict], seeds) -> list[str]:
+def summary_lines(rows: list[dict], seeds, command: str = "python -m benchmarks.cylinder_rows") -> list[str]:
     """The markdown table: one line per grain, height and method, over the seeds' draws."""
     depth = rows[0]["cylinder_depth_rad"]
     lines = [
         f"# A wide weak cylinder against the frame's height ({device_name(np)})",
         "",
-        f"`python -m benchmarks.cylinder_rows`: the demo scan's cylinder alone ({depth:.1f} rad deep, "
+        f"`{command}`: the demo scan's cylinder alone ({depth:.1f} rad deep, "
         f"0.72 of {WIDTH_PX} px wide; the paper's optics, 1e4 ph/px), frames of each height, angles "
         f"{', '.join(f'{a:.0f}' for a in ANGLES_DEG)} deg, {len(seeds)} draws of phantom offset, diffuser and "
         "noise (seeds " + ", ".join(map(str, seeds)) + "), coherence lengths calibrated from each reference.",
