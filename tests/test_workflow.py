@@ -126,6 +126,40 @@ def test_gpu_device_gives_the_cpu_result(cupy, tiny_scan, tmp_path):
             assert np.abs(difference).max() < (tolerance if name in ("delta", "beta") else 1e-4) * scale, name
 
 
+def test_slice_background_fits_the_tomograms_it_names_and_none_is_the_bare_fbp(fast_recon, tmp_path):
+    """``slice_background``: "none" writes the FBP itself (the phase and attenuation sinograms
+    back-projected and scaled, nothing subtracted), "beta" that FBP for delta and the fitted
+    beta of the default "quadratic"; the mode is recorded, a store made under another is made
+    again, and a bad name is refused in one line before anything is written."""
+    from pwf_dask.physics.optics import wavelength_m
+    from pwf_dask.tomo import tomography
+
+    path = tmp_path / "r.zarr"
+    shutil.copytree(fast_recon, path)
+    made = {}
+    for mode in ("quadratic", "none", "beta"):
+        workflow.tomo_scan(path, slice_background=mode)
+        ds = xr.open_zarr(path)
+        assert ds.attrs["slice_background"] == mode
+        made[mode] = {name: ds[name].values.copy() for name in ("delta", "beta")}
+    ds = xr.open_zarr(path)
+    k = wavelength_m(ds.attrs["energy_eV"]) / (2 * np.pi)
+    for p in range(ds.sizes["position"]):
+        for name, var, sign in (("delta", "phase", -k), ("beta", "attenuation", k)):
+            fbp = tomography.back_projection(
+                ds[var][p].values, ds.angle.values, ds.attrs["pixel_size_m"], ds.attrs["rotation_center_m"]
+            )
+            # float32 rounding: the stage scales the float32 FBP in place
+            np.testing.assert_allclose(made["none"][name][p], sign * fbp, rtol=0, atol=1e-4 * np.abs(fbp).max() * k)
+    np.testing.assert_array_equal(made["beta"]["delta"], made["none"]["delta"])
+    np.testing.assert_array_equal(made["beta"]["beta"], made["quadratic"]["beta"])
+    assert np.abs(made["quadratic"]["delta"] - made["none"]["delta"]).max() > 1e-3 * np.abs(made["none"]["delta"]).max()
+    with pytest.raises(ValueError, match="unknown slice_background 'plane'") as exc:
+        workflow.tomo_scan(path, slice_background="plane")
+    assert "\n" not in str(exc.value)
+    np.testing.assert_array_equal(xr.open_zarr(path)["delta"].values, made["beta"]["delta"])
+
+
 def slice_quadratic(s):
     """The least-squares quadratic surface of one slice, on the slice's grid."""
     y, x = np.mgrid[: s.shape[0], : s.shape[1]] / max(s.shape)

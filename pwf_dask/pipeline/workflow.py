@@ -865,7 +865,7 @@ def _read_sinogram(g, recon_path, name, p, rows, b) -> tuple[np.ndarray | None, 
     return None, damaged
 
 
-def _tomo_task(item, *, recon_path, center_m, device, fft_workers, fbp):
+def _tomo_task(item, *, recon_path, center_m, device, fft_workers, fbp, slice_background="quadratic"):
     """FBP of one (position, row block); returns the damaged chunks it found (then nothing is
     written and the block stays not done)."""
     import zarr
@@ -893,8 +893,9 @@ def _tomo_task(item, *, recon_path, center_m, device, fft_workers, fbp):
         slices = tomography.back_projection(sino, angles, pix, center_m, fft=fft, method=fbp)
         del sino
         slices *= np.float32(sign * wl / (2 * np.pi))  # tomography.to_refractive_index, in place
-        # the background fit on the FBP's device, then to the host
-        g[out][p, rows] = to_numpy(tomography.remove_background(slices)).astype(np.float32, copy=False)
+        if tomography.fits_background(out, slice_background):  # on the FBP's device, then to the host
+            slices = tomography.remove_background(slices)
+        g[out][p, rows] = to_numpy(slices).astype(np.float32, copy=False)
         del slices
     g["tomo_done"][p, b] = 1
     return []
@@ -938,15 +939,19 @@ def tomo_scan(
     center_m: float | None = None,
     runner: Runner | None = None,
     fbp: str = "auto",
+    slice_background: str = "quadratic",
 ) -> dict:
     """Tomography stage: FBP of phase and attenuation per (position, row block) -> delta, beta.
 
     ``fbp`` (:data:`tomography.FBP_METHODS`): "auto" is gridding where its NUFFT is installed.
-    The method used is recorded; tomograms made by another are made again, never mixed.
+    ``slice_background`` (:data:`tomography.SLICE_BACKGROUNDS`): which tomograms get the
+    quadratic background fit after the FBP (Methods; "quadratic": both, the default). Both
+    are recorded; tomograms made otherwise are made again, never mixed.
     """
     import zarr
 
     check_scheduler(scheduler)
+    tomography.check_slice_background(slice_background)
     fbp = tomography.resolve_fbp(fbp, resolve_device(device) if "://" not in scheduler else np)
     path = str(Path(recon_path).resolve())
     if not Path(path).exists():
@@ -966,7 +971,7 @@ def tomo_scan(
             raise RetrievalDamaged(
                 f"{exc} (projection {exc.index[:2]}); marked not done: rerun 'pwf-dask retrieve' (or 'run')"
             ) from None
-    _create_tomograms(g, float(center_m), estimated, fbp)
+    _create_tomograms(g, float(center_m), estimated, fbp, slice_background)
     own = runner is None
     runner = runner or Runner(scheduler)
     try:
@@ -985,6 +990,7 @@ def tomo_scan(
             recon_path=path,
             center_m=float(center_m),
             fbp=fbp,
+            slice_background=slice_background,
             device=device,
             fft_workers=runner.fft_workers(),
         )
@@ -1025,11 +1031,14 @@ def _check_retrieved(path: str, g) -> None:
         raise scan_io.ScanError(f"{path}: one angle; tomography needs >= 2 (its phase and attenuation are complete)")
 
 
-def _create_tomograms(g, center_m: float, estimated: bool, fbp: str = "backproject") -> None:
-    """The delta/beta arrays and their bookkeeping, new unless they exist for this centre (their
-    attributes are written last: an interrupted creation is made again)."""
+def _create_tomograms(
+    g, center_m: float, estimated: bool, fbp: str = "backproject", slice_background: str = "quadratic"
+) -> None:
+    """The delta/beta arrays and their bookkeeping, new unless they exist for this centre, FBP
+    and background fit (their attributes are written last: an interrupted creation is made again)."""
     same_fbp = g.attrs.get("fbp", "backproject") == fbp  # stores before issue #31 were backprojected
-    if "delta" in g and float(g.attrs.get("rotation_center_m", np.nan)) == center_m and same_fbp:
+    same_fit = g.attrs.get("slice_background", "quadratic") == slice_background  # and before session 74 fitted both
+    if "delta" in g and float(g.attrs.get("rotation_center_m", np.nan)) == center_m and same_fbp and same_fit:
         return
     npos, _, ny, nx = g["phase"].shape
     rb = g["phase"].chunks[2]
@@ -1047,7 +1056,12 @@ def _create_tomograms(g, center_m: float, estimated: bool, fbp: str = "backproje
             "rotation_center_estimated": estimated,
             "filter": "ram-lak",
             "fbp": fbp,
-            "background_removal": "quadratic surface per slice",
+            "slice_background": slice_background,
+            "background_removal": {
+                "quadratic": "quadratic surface per slice",
+                "none": "none",
+                "beta": "quadratic surface per slice of beta; none on delta",
+            }[slice_background],
         }
     )
 
@@ -1271,26 +1285,29 @@ def run_scan(
     center_m: float | None = None,
     runner: Runner | None = None,
     fbp: str = "auto",
+    slice_background: str = "quadratic",
     **retrieve_options,
 ) -> dict:
     """All stages on one scheduler connection: retrieve, tomo, fsc. A single-angle scan (a
     radiograph) stops after retrieval: ``tomo`` and ``fsc`` are then None."""
     tomography.resolve_fbp(fbp)  # a bad name fails before anything is written
+    tomography.check_slice_background(slice_background)
     own = runner is None
     runner = runner or Runner(scheduler)
+    tomo = dict(scheduler=scheduler, device=device, center_m=center_m, runner=runner, fbp=fbp)
     try:
         r = retrieve_scan(scan_path, recon_path, scheduler=scheduler, device=device, runner=runner, **retrieve_options)
         if _n_angles(recon_path) < 2:
             return {"retrieve": r, "tomo": None, "fsc": None}
         try:
-            t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner, fbp=fbp)
+            t = tomo_scan(recon_path, slice_background=slice_background, **tomo)
         except RetrievalDamaged as exc:  # recompute what tomography found damaged, once
             _say(f"run: {exc}; recomputing")
             again = retrieve_scan(
                 scan_path, recon_path, scheduler=scheduler, device=device, runner=runner, **retrieve_options
             )
             r["computed"] += again["computed"]
-            t = tomo_scan(recon_path, scheduler=scheduler, device=device, center_m=center_m, runner=runner, fbp=fbp)
+            t = tomo_scan(recon_path, slice_background=slice_background, **tomo)
     finally:
         if own:
             runner.close()

@@ -323,6 +323,25 @@ def background_mask(image):
     return mask
 
 
+#: What the slice's background fit (Methods, after the FBP) is applied to: "quadratic" both
+#: tomograms (the paper), "none" neither, "beta" the attenuation's alone. On the demo scan the
+#: phase's fit reads a sample's halo (its projections' rim-step error, docs/validation.md) as
+#: background curvature and takes the cylinder's delta from -2.5 % to -15.9 %.
+SLICE_BACKGROUNDS = ("quadratic", "none", "beta")
+
+
+def check_slice_background(mode: str) -> str:
+    """``mode`` if it is one of :data:`SLICE_BACKGROUNDS`, else a one-line ValueError."""
+    if mode not in SLICE_BACKGROUNDS:
+        raise ValueError(f"unknown slice_background {mode!r}: choose one of {', '.join(SLICE_BACKGROUNDS)}")
+    return mode
+
+
+def fits_background(volume: str, mode: str) -> bool:
+    """Whether tomogram ``volume`` ("delta" or "beta") gets the slice's background fit under ``mode``."""
+    return check_slice_background(mode) == "quadratic" or (mode == "beta" and volume == "beta")
+
+
 def remove_background(slices, degree: int = 2):
     """Subtract a quadratic surface fitted over the empty area of each slice (Methods), on the
     slices' device: with ``--device gpu`` a 2560^2 slice's ~0.5 s of host work stays on the GPU."""
