@@ -158,20 +158,23 @@ def _retrieve(args) -> int:
     return 0
 
 
+def tomo_kwargs(args, runner) -> dict:
+    """``tomo`` and ``run``'s keywords for the tomography stage (add_tomo_options)."""
+    return dict(
+        scheduler=args.scheduler,
+        device=args.device,
+        center_m=None if args.center_um is None else args.center_um * 1e-6,
+        runner=runner,
+        fbp=args.fbp,
+        slice_background=args.slice_background,
+    )
+
+
 def _tomo(args) -> int:
     from pwf_dask.pipeline.workflow import tomo_scan
 
-    center = None if args.center_um is None else args.center_um * 1e-6
     with _runner(args) as runner:
-        r = tomo_scan(
-            args.recon,
-            scheduler=args.scheduler,
-            device=args.device,
-            center_m=center,
-            runner=runner,
-            fbp=args.fbp,
-            slice_background=args.slice_background,
-        )
+        r = tomo_scan(args.recon, **tomo_kwargs(args, runner))
     print(f"tomograms delta, beta written to {args.recon} (rotation centre {r['rotation_center_m'] * 1e6:+.2f} µm)")
     return 0
 
@@ -191,20 +194,8 @@ def _run(args) -> int:
     from pwf_dask.pipeline.workflow import run_scan
     from pwf_dask.plots import preview
 
-    center = None if args.center_um is None else args.center_um * 1e-6
     with _runner(args) as runner:
-        r = run_scan(
-            args.scan,
-            args.recon,
-            scheduler=args.scheduler,
-            device=args.device,
-            split=args.split,
-            center_m=center,
-            runner=runner,
-            fbp=args.fbp,
-            slice_background=args.slice_background,
-            **retrieval_kwargs(args),
-        )
+        r = run_scan(args.scan, args.recon, split=args.split, **tomo_kwargs(args, runner), **retrieval_kwargs(args))
     f = r["fsc"]
     figures = preview(args.recon, args.figures)
     if f is None:
