@@ -1,16 +1,17 @@
 """A wide weak cylinder's phase against the frame's height and the diffuser's grain (issue #27).
 
-The demo scan's cylinder (cellulose, 0.72 of a 128-px frame wide, ~8 rad deep at 10 keV,
-the paper's optics, 1e4 ph/px, beads removed) reads 8-17 % low in the demo's 48-row tomograms
+The demo scan's cylinder (cellulose, 0.72 of a 128-px frame wide, ~8 rad deep at 10 keV, the
+paper's optics, 1e4 ph/px, beads removed) reads 12-13 % low in the demo's 48-row projections
 (docs/validation.md, "Where the demo's 0.25 comes from": a rim step traded for a background
-ramp the data barely see). This sweep measures that loss in single projections as the frame
-grows taller, on the paper's P3000 sandpaper and on finer grains, for PWF (the defaults and
-the paper's alpha) and UMPA with one image, each with the coherence lengths calibrated from
-the reference. Per projection it reports the cylinder's phase gain (least-squares slope on
-the pixels where the true phase is below -0.3 rad, after the sample-free pixels' median is
-taken off), the spread of that gain over bands of 8 rows, and the level difference between
-the sample-free pixels left and right of the cylinder (a lost rim step shows there: the truth
-is 0 on both sides).
+ramp the data barely see; in its tomograms 7-16 %, most of that the slice's background fit,
+"The slice's background fit takes the demo's cylinder down"). This sweep measures the loss in
+single projections as the frame grows taller, on the paper's P3000 sandpaper and on finer and
+coarser grains, for PWF (the defaults and the paper's alpha) and UMPA with one image, each with
+the coherence lengths calibrated from the reference. Per projection it reports the cylinder's
+phase gain (least-squares slope on the pixels where the true phase is below -0.3 rad, after the
+sample-free pixels' median is taken off), the spread of that gain over bands of 8 rows, and the
+level difference between the sample-free pixels left and right of the cylinder (a lost rim step
+shows there: the truth is 0 on both sides).
 
     python -m benchmarks.cylinder_rows [--out benchmarks/results] [--rows 48 96 192 384 768]
     python -m benchmarks.cylinder_rows --why [--out benchmarks/results]
