@@ -1057,11 +1057,7 @@ def _create_tomograms(
             "filter": "ram-lak",
             "fbp": fbp,
             "slice_background": slice_background,
-            "background_removal": {
-                "quadratic": "quadratic surface per slice",
-                "none": "none",
-                "beta": "quadratic surface per slice of beta; none on delta",
-            }[slice_background],
+            "background_removal": tomography.SLICE_BACKGROUNDS[slice_background],
         }
     )
 

@@ -327,7 +327,11 @@ def background_mask(image):
 #: tomograms (the paper), "none" neither, "beta" the attenuation's alone. On the demo scan the
 #: phase's fit reads a sample's halo (its projections' rim-step error, docs/validation.md) as
 #: background curvature and takes the cylinder's delta from -2.5 % to -15.9 %.
-SLICE_BACKGROUNDS = ("quadratic", "none", "beta")
+SLICE_BACKGROUNDS = {
+    "quadratic": "quadratic surface per slice",
+    "none": "none",
+    "beta": "quadratic surface per slice of beta; none on delta",
+}
 
 
 def check_slice_background(mode: str) -> str:
