@@ -328,11 +328,13 @@ def add_tomo_options(p) -> None:
     )
     p.add_argument(
         "--slice-background",
-        default="quadratic",
-        choices=["quadratic", "none", "beta"],
-        help="the quadratic background fit after the FBP (the paper's Methods): on both tomograms, on none, or "
-        "on beta alone (a sample's halo can read as curvature: the demo's cylinder delta -2.5 %% unfitted, "
-        "-15.9 %% fitted; docs/validation.md)",
+        default="auto",
+        choices=["auto", "quadratic", "none", "beta"],
+        help="the quadratic background fit after the FBP (the paper's Methods). auto: on both tomograms, over "
+        "the sample-free pixels beyond the sample's halo (one equivalent radius out), on slices where those "
+        "cover a quarter of the field of view, else none; quadratic: over every sample-free pixel (the "
+        "paper's; a halo then reads as curvature: the demo's cylinder delta -2.5 %% bare, -15.9 %% fitted); "
+        "none; beta: on beta alone (docs/user-guide.md)",
     )
 
 

@@ -393,7 +393,7 @@ def _user_kernels(cp) -> None:
 
 
 #: ``cupyx.scipy.ndimage`` routines the package calls (the same names and modes as SciPy's)
-NDIMAGE = ("gaussian_filter", "binary_dilation")
+NDIMAGE = ("gaussian_filter", "binary_dilation", "distance_transform_edt")
 
 
 def _cupyx() -> dict[str, types.ModuleType]:

@@ -1,6 +1,9 @@
 """What the accuracy tests measure a result by, and the K = 12 LCS scan they hold PWF's
 against; written once for their modules."""
 
+import shutil
+from pathlib import Path
+
 import numpy as np
 import xarray as xr
 
@@ -33,6 +36,16 @@ def bead_values(ds, p):
     Y, V, U = np.meshgrid(ds.y.values, ds.v.values, ds.u.values, indexing="ij")
     ins = (Y - bead.y_m) ** 2 + (V - bead.v_m) ** 2 + (U - bead.u_m) ** 2 < (0.5 * bead.radius_m) ** 2
     return float(ds.delta[p].values[ins].mean()), float(ds.beta[p].values[ins].mean())
+
+
+def under_papers_fit(ds, tmp_path):
+    """A reconstruction's store copied and its tomograms made again under the paper's slice fit
+    (``slice_background="quadratic"``): the tomography the paper compares its methods with."""
+    source = Path(ds.encoding["source"])
+    copy = tmp_path / f"{source.parent.name}-{source.stem}-quadratic.zarr"
+    shutil.copytree(source, copy)
+    workflow.tomo_scan(copy, slice_background="quadratic")
+    return xr.open_zarr(copy)
 
 
 def lcs12(tmp_path_factory, name, **scene):

@@ -129,15 +129,17 @@ def test_gpu_device_gives_the_cpu_result(cupy, tiny_scan, tmp_path):
 def test_slice_background_fits_the_tomograms_it_names_and_none_is_the_bare_fbp(fast_recon, tmp_path):
     """``slice_background``: "none" writes the FBP itself (the phase and attenuation sinograms
     back-projected and scaled, nothing subtracted), "beta" that FBP for delta and the fitted
-    beta of the default "quadratic"; the mode is recorded, a store made under another is made
-    again, and a bad name is refused in one line before anything is written."""
+    beta of "quadratic", the default "auto" that FBP fitted where delta's slices have
+    sample-free pixels beyond the sample's reach, beta on the same slices; the mode is
+    recorded, a store made under another is made again, and a bad name is refused in one
+    line before anything is written."""
     from pwf_dask.physics.optics import wavelength_m
     from pwf_dask.tomo import tomography
 
     path = tmp_path / "r.zarr"
     shutil.copytree(fast_recon, path)
     made = {}
-    for mode in ("quadratic", "none", "beta"):
+    for mode in ("quadratic", "none", "beta", "auto"):
         workflow.tomo_scan(path, slice_background=mode)
         ds = xr.open_zarr(path)
         assert ds.attrs["slice_background"] == mode
@@ -151,13 +153,18 @@ def test_slice_background_fits_the_tomograms_it_names_and_none_is_the_bare_fbp(f
             )
             # float32 rounding: the stage scales the float32 FBP in place
             np.testing.assert_allclose(made["none"][name][p], sign * fbp, rtol=0, atol=1e-4 * np.abs(fbp).max() * k)
+    for p in range(ds.sizes["position"]):
+        far = tomography.far_background_masks(made["none"]["delta"][p])
+        for name in ("delta", "beta"):
+            expected = tomography.corrected_slices(made["none"][name][p], name, "auto", far)
+            np.testing.assert_allclose(made["auto"][name][p], expected, rtol=0, atol=1e-6 * np.abs(expected).max())
     np.testing.assert_array_equal(made["beta"]["delta"], made["none"]["delta"])
     np.testing.assert_array_equal(made["beta"]["beta"], made["quadratic"]["beta"])
     assert np.abs(made["quadratic"]["delta"] - made["none"]["delta"]).max() > 1e-3 * np.abs(made["none"]["delta"]).max()
     with pytest.raises(ValueError, match="unknown slice_background 'plane'") as exc:
         workflow.tomo_scan(path, slice_background="plane")
     assert "\n" not in str(exc.value)
-    np.testing.assert_array_equal(xr.open_zarr(path)["delta"].values, made["beta"]["delta"])
+    np.testing.assert_array_equal(xr.open_zarr(path)["delta"].values, made["auto"]["delta"])
 
 
 def slice_quadratic(s):

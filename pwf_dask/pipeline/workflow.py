@@ -865,7 +865,9 @@ def _read_sinogram(g, recon_path, name, p, rows, b) -> tuple[np.ndarray | None, 
     return None, damaged
 
 
-def _tomo_task(item, *, recon_path, center_m, device, fft_workers, fbp, slice_background="quadratic"):
+def _tomo_task(
+    item, *, recon_path, center_m, device, fft_workers, fbp, slice_background=tomography.DEFAULT_SLICE_BACKGROUND
+):
     """FBP of one (position, row block); returns the damaged chunks it found (then nothing is
     written and the block stays not done)."""
     import zarr
@@ -888,13 +890,16 @@ def _tomo_task(item, *, recon_path, center_m, device, fft_workers, fbp, slice_ba
         if damaged:
             return [str(d) for d in damaged]
     # one volume at a time: delta is written before beta's FBP (the task's peak, issue #29)
+    far = None
     for name, out, sign in (("phase", "delta", -1.0), ("attenuation", "beta", 1.0)):
         sino = xp.asarray(sinograms.pop(name))
         slices = tomography.back_projection(sino, angles, pix, center_m, fft=fft, method=fbp)
         del sino
         slices *= np.float32(sign * wl / (2 * np.pi))  # tomography.to_refractive_index, in place
-        if tomography.fits_background(out, slice_background):  # on the FBP's device, then to the host
-            slices = tomography.remove_background(slices)
+        if out == "delta" and slice_background == "auto":  # beta's fit goes where delta's does
+            far = tomography.far_background_masks(slices)
+        # on the FBP's device, then to the host
+        slices = tomography.corrected_slices(slices, out, slice_background, far)
         g[out][p, rows] = to_numpy(slices).astype(np.float32, copy=False)
         del slices
     g["tomo_done"][p, b] = 1
@@ -939,14 +944,15 @@ def tomo_scan(
     center_m: float | None = None,
     runner: Runner | None = None,
     fbp: str = "auto",
-    slice_background: str = "quadratic",
+    slice_background: str = tomography.DEFAULT_SLICE_BACKGROUND,
 ) -> dict:
     """Tomography stage: FBP of phase and attenuation per (position, row block) -> delta, beta.
 
     ``fbp`` (:data:`tomography.FBP_METHODS`): "auto" is gridding where its NUFFT is installed.
     ``slice_background`` (:data:`tomography.SLICE_BACKGROUNDS`): which tomograms get the
-    quadratic background fit after the FBP (Methods; "quadratic": both, the default). Both
-    are recorded; tomograms made otherwise are made again, never mixed.
+    quadratic background fit after the FBP (Methods): "auto", the default, fits both where
+    the slice has sample-free pixels beyond the sample's halo; "quadratic" (the paper's)
+    wherever it has any. Both are recorded; tomograms made otherwise are made again, never mixed.
     """
     import zarr
 
@@ -1032,7 +1038,11 @@ def _check_retrieved(path: str, g) -> None:
 
 
 def _create_tomograms(
-    g, center_m: float, estimated: bool, fbp: str = "backproject", slice_background: str = "quadratic"
+    g,
+    center_m: float,
+    estimated: bool,
+    fbp: str = "backproject",
+    slice_background: str = tomography.DEFAULT_SLICE_BACKGROUND,
 ) -> None:
     """The delta/beta arrays and their bookkeeping, new unless they exist for this centre, FBP
     and background fit (their attributes are written last: an interrupted creation is made again)."""
@@ -1117,12 +1127,22 @@ def _sub_volume_fsc(a, b, pix: float, full_shape: tuple[int, int, int]):
 
 def _even_odd_volumes(path, g, name, p, center_m, wl, sign, rows: slice, px: slice):
     """delta (or beta) from the even and the odd angles alone, on the FSC sub-volume; each
-    block of full slices is reconstructed and background-corrected before the crop."""
+    block of full slices is reconstructed and background-corrected before the crop, as the
+    store's tomograms were (under "auto" where the stored delta's slices have room)."""
     angles = g["angle"][...]
     order = np.argsort(angles)
     halves = (np.sort(order[0::2]), np.sort(order[1::2]))
     pix = float(g.attrs["pixel_size_m"])
+    mode = g.attrs.get("slice_background", "quadratic")
+    volume = "delta" if name == "phase" else "beta"
     sino = integrity.read_checked(path, g[name], name, (p, slice(None), rows))
+    far = {}
+    if mode == "auto":
+        stored = integrity.read_checked(path, g["delta"], "delta", (p, rows))
+        far = {
+            s: tomography.far_background_masks(stored[s : s + _FSC_BLOCK_ROWS])
+            for s in range(0, len(stored), _FSC_BLOCK_ROWS)
+        }
     vols = []
     for idx in halves:
         blocks = []
@@ -1131,7 +1151,8 @@ def _even_odd_volumes(path, g, name, p, center_m, wl, sign, rows: slice, px: sli
             vol = tomography.back_projection(
                 block, angles[idx], pix, center_m, method=g.attrs.get("fbp", "backproject")
             )
-            blocks.append(tomography.remove_background(sign * wl / (2 * np.pi) * vol)[:, px, px].astype(np.float32))
+            vol = tomography.corrected_slices(sign * wl / (2 * np.pi) * vol, volume, mode, far.get(start))
+            blocks.append(vol[:, px, px].astype(np.float32))
         vols.append(np.concatenate(blocks))
     return vols
 
@@ -1281,7 +1302,7 @@ def run_scan(
     center_m: float | None = None,
     runner: Runner | None = None,
     fbp: str = "auto",
-    slice_background: str = "quadratic",
+    slice_background: str = tomography.DEFAULT_SLICE_BACKGROUND,
     **retrieve_options,
 ) -> dict:
     """All stages on one scheduler connection: retrieve, tomo, fsc. A single-angle scan (a

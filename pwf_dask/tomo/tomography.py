@@ -324,14 +324,30 @@ def background_mask(image):
 
 
 #: What the slice's background fit (Methods, after the FBP) is applied to: "quadratic" both
-#: tomograms (the paper), "none" neither, "beta" the attenuation's alone. On the demo scan the
-#: phase's fit reads a sample's halo (its projections' rim-step error, docs/validation.md) as
-#: background curvature and takes the cylinder's delta from -2.5 % to -15.9 %.
+#: tomograms over every sample-free pixel (the paper), "none" neither, "beta" the attenuation's
+#: alone, "auto" (the default) both, but only over the sample-free pixels beyond the sample's
+#: reach (:func:`far_background_mask`), and only on slices that have enough of them. The
+#: phase's low-frequency error spreads a sample's rim into a halo around it (docs/validation.md:
+#: +0.11-0.13 of delta out to 1.6 radii on the demo); a fit that reads the halo as background
+#: takes the sample down with it (the demo's cylinder -2.5 % bare, -15.9 % fitted).
 SLICE_BACKGROUNDS = {
+    "auto": "quadratic surface per slice over the sample-free pixels beyond the sample's reach; "
+    "none on slices without enough of them",
     "quadratic": "quadratic surface per slice",
     "none": "none",
     "beta": "quadratic surface per slice of beta; none on delta",
 }
+#: the mode a tomography run uses unless told otherwise
+DEFAULT_SLICE_BACKGROUND = "auto"
+
+#: "auto" fits only pixels at least this many of the sample's equivalent radii (the radius of
+#: a disc of the sample's area in the slice) from the sample: the halo's reach. Measured on
+#: the demo's cylinder at half size in a frame twice as wide (session 75): the halo falls from
+#: +0.17 of delta at the rim to +0.02 one radius out.
+SAMPLE_REACH_RADII = 1.0
+#: ... and only on slices where such pixels cover this share of the field of view, so that the
+#: quadratic is fitted around the sample rather than extrapolated from a strip of it.
+MIN_FAR_FRACTION = 0.25
 
 
 def check_slice_background(mode: str) -> str:
@@ -342,13 +358,64 @@ def check_slice_background(mode: str) -> str:
 
 
 def fits_background(volume: str, mode: str) -> bool:
-    """Whether tomogram ``volume`` ("delta" or "beta") gets the slice's background fit under ``mode``."""
-    return check_slice_background(mode) == "quadratic" or (mode == "beta" and volume == "beta")
+    """Whether tomogram ``volume`` ("delta" or "beta") gets a slice background fit under ``mode``
+    (under "auto", on the slices :func:`far_background_mask` finds room on)."""
+    return check_slice_background(mode) in ("quadratic", "auto") or (mode == "beta" and volume == "beta")
 
 
-def remove_background(slices, degree: int = 2):
+def field_of_view(shape: tuple[int, int], xp=np):
+    """The disc every angle sees of a slice centred on the axis (the FBP's inscribed circle)."""
+    y = xp.arange(shape[0])[:, None] - (shape[0] - 1) / 2
+    x = xp.arange(shape[1])[None, :] - (shape[1] - 1) / 2
+    return y**2 + x**2 <= (0.5 * (min(shape) - 1)) ** 2
+
+
+def far_background_mask(image):
+    """Sample-free pixels of a slice's field of view at least :data:`SAMPLE_REACH_RADII` of the
+    sample's equivalent radii from it (the sample is the field of view's pixels
+    :func:`background_mask` does not call sample-free), or None where those are fewer than
+    :data:`MIN_FAR_FRACTION` of the field of view: there every sample-free pixel is within
+    the sample's halo, and a fit would read the halo as background. On the slice's device."""
+    xp = get_array_module(image)
+    background = background_mask(image)
+    fov = field_of_view(image.shape, xp)
+    sample = fov & ~background
+    reach_px = SAMPLE_REACH_RADII * float(xp.sqrt(sample.sum() / np.pi))
+    # the distance to the sample is searched on the binned grid background_mask searches on
+    b = max(1, min(image.shape) // BACKGROUND_SEARCH_PX)
+    ny, nx = (image.shape[0] // b) * b, (image.shape[1] // b) * b
+    coarse = sample[:ny, :nx].reshape(ny // b, b, nx // b, b).any(axis=(1, 3))
+    distance = backend.ndimage(xp).distance_transform_edt(~coarse) * b
+    near = xp.ones(image.shape, bool)
+    near[:ny, :nx] = xp.repeat(xp.repeat(distance < reach_px, b, axis=0), b, axis=1)
+    far = background & fov & ~near
+    return far if int(far.sum()) >= MIN_FAR_FRACTION * int(fov.sum()) else None
+
+
+def far_background_masks(delta_slices) -> list:
+    """:func:`far_background_mask` of each slice of delta: where "auto" fits both tomograms
+    (the phase's sample, which the attenuation shares and sees less clearly)."""
+    return [far_background_mask(s.astype(get_array_module(s).float64)) for s in delta_slices]
+
+
+def corrected_slices(slices, volume: str, mode: str, far_masks=None):
+    """``slices`` of tomogram ``volume`` with the background of ``mode`` (:data:`SLICE_BACKGROUNDS`)
+    removed; under "auto" ``far_masks`` (:func:`far_background_masks` of the same slices of
+    delta) says where, and a slice whose entry is None is returned as the FBP made it."""
+    if not fits_background(volume, mode):
+        return slices
+    if mode != "auto":
+        return remove_background(slices)
+    # delta's masks are its own sample-free pixels already; beta's are narrowed to its own too
+    return remove_background(slices, fit_masks=far_masks, detect=volume != "delta")
+
+
+def remove_background(slices, degree: int = 2, fit_masks=None, detect: bool = True):
     """Subtract a quadratic surface fitted over the empty area of each slice (Methods), on the
-    slices' device: with ``--device gpu`` a 2560^2 slice's ~0.5 s of host work stays on the GPU."""
+    slices' device: with ``--device gpu`` a 2560^2 slice's ~0.5 s of host work stays on the GPU.
+    ``fit_masks`` (one per slice) narrows each fit to the slice's sample-free pixels within
+    the mask (to the mask itself with ``detect`` False); a slice whose mask is None is left
+    as it is."""
     xp = get_array_module(slices)
     slices = xp.asarray(slices)
     # single-precision slices come back single (each fitted in double): a task then holds one
@@ -356,6 +423,12 @@ def remove_background(slices, degree: int = 2):
     out = xp.empty(slices.shape, xp.float32 if slices.dtype == xp.float32 else xp.float64)
     for i in range(slices.shape[0]):
         s = slices[i].astype(xp.float64)
-        mask = background_mask(s)
-        out[i] = bg.zero_background(s, mask, degree) if int(mask.sum()) >= 6 else s
+        if fit_masks is not None and fit_masks[i] is None:
+            out[i] = s
+            continue
+        if fit_masks is None:
+            mask = background_mask(s)
+        else:
+            mask = background_mask(s) & fit_masks[i] if detect else fit_masks[i]
+        out[i] = bg.zero_background(s, mask, degree) if int(mask.sum()) >= bg.MIN_BACKGROUND_PIXELS else s
     return out
