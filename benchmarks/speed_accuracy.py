@@ -15,6 +15,7 @@ import numpy as np
 from benchmarks.reporting import device_name, write_rows_csv
 from pwf_dask.pwf import solver
 from pwf_dask.retrieval import AUTHORS_RELEASE
+from pwf_dask.tomo import tomography
 
 
 def _tomogram_errors(recon_path) -> dict:
@@ -174,7 +175,9 @@ def run_accuracy_benchmark(
         f"`pwf-dask bench accuracy --preset {preset}`: {scene['words']}, 1e4 ph/px, paper optics and",
         "diffuser: four layers of P3000), same phantom for every run; wall time of retrieve + tomo + fsc",
         "on 2 cores. Errors against the analytic truth: delta RMSE inside the sample relative to its mean,",
-        "largest bead's delta and beta (relative), FSC resolution against the truth (1/2).",
+        "largest bead's delta and beta (relative), FSC resolution against the truth (1/2). Tomograms",
+        f"under the default slice background ({tomography.DEFAULT_SLICE_BACKGROUND}; results before session 75:",
+        "the paper's quadratic fit).",
         "* = on the Pareto front of time vs delta RMSE.",
         "",
         "Calibration: seconds of the coherence-length fit (PWF's; inside the wall time; templates are",
