@@ -322,3 +322,18 @@ def test_a_librarys_warning_of_several_lines_is_printed_as_its_first_line():
     out = io.StringIO()
     cli._one_line_warning(UserWarning("Failed to open the store.\nTo silence it:\n1. ..."), UserWarning, "f", 1, out)
     assert out.getvalue() == "pwf-dask: warning: Failed to open the store.\n"
+
+
+def test_slice_background_choices_are_the_tomography_modes():
+    """The CLI names its choices without importing the numerics; they are the modes
+    ``tomography.SLICE_BACKGROUNDS`` defines, its default the stage's."""
+    import argparse
+
+    from pwf_dask.tomo import tomography
+
+    parser = cli.build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    for command in ("tomo", "run"):
+        action = next(a for a in commands[command]._actions if "--slice-background" in a.option_strings)
+        assert sorted(action.choices) == sorted(tomography.SLICE_BACKGROUNDS), command
+        assert action.default == tomography.DEFAULT_SLICE_BACKGROUND, command

@@ -1125,10 +1125,22 @@ def _sub_volume_fsc(a, b, pix: float, full_shape: tuple[int, int, int]):
     return fsc.fourier_shell_correlation(a, b, pix)
 
 
-def _even_odd_volumes(path, g, name, p, center_m, wl, sign, rows: slice, px: slice):
+def _stored_far_masks(path, g, p, rows: slice) -> dict:
+    """Under "auto", :func:`tomography.far_background_masks` of the stored delta's slices of
+    position ``p``, per FSC block of rows (the start row its key); else empty."""
+    if g.attrs.get("slice_background", "quadratic") != "auto":
+        return {}
+    stored = integrity.read_checked(path, g["delta"], "delta", (p, rows))
+    return {
+        s: tomography.far_background_masks(stored[s : s + _FSC_BLOCK_ROWS])
+        for s in range(0, len(stored), _FSC_BLOCK_ROWS)
+    }
+
+
+def _even_odd_volumes(path, g, name, p, center_m, wl, sign, rows: slice, px: slice, far: dict):
     """delta (or beta) from the even and the odd angles alone, on the FSC sub-volume; each
     block of full slices is reconstructed and background-corrected before the crop, as the
-    store's tomograms were (under "auto" where the stored delta's slices have room)."""
+    store's tomograms were (under "auto" where ``far``, :func:`_stored_far_masks`, says)."""
     angles = g["angle"][...]
     order = np.argsort(angles)
     halves = (np.sort(order[0::2]), np.sort(order[1::2]))
@@ -1136,13 +1148,6 @@ def _even_odd_volumes(path, g, name, p, center_m, wl, sign, rows: slice, px: sli
     mode = g.attrs.get("slice_background", "quadratic")
     volume = "delta" if name == "phase" else "beta"
     sino = integrity.read_checked(path, g[name], name, (p, slice(None), rows))
-    far = {}
-    if mode == "auto":
-        stored = integrity.read_checked(path, g["delta"], "delta", (p, rows))
-        far = {
-            s: tomography.far_background_masks(stored[s : s + _FSC_BLOCK_ROWS])
-            for s in range(0, len(stored), _FSC_BLOCK_ROWS)
-        }
     vols = []
     for idx in halves:
         blocks = []
@@ -1225,8 +1230,9 @@ def _even_odd_curves(path, g, rows: slice, px: slice):
     curves: dict[str, list] = {"delta": [], "beta": []}
     labels = []
     for p in range(g["delta"].shape[0]):
+        far = _stored_far_masks(path, g, p, rows)  # both volumes' fits go where delta's did
         for name, src, sign in (("delta", "phase", -1.0), ("beta", "attenuation", 1.0)):
-            a, b = _even_odd_volumes(path, g, src, p, center, wl, sign, rows, px)
+            a, b = _even_odd_volumes(path, g, src, p, center, wl, sign, rows, px, far)
             f, c, n = _sub_volume_fsc(a, b, pix, g["delta"].shape[1:])
             curves[name].append(c)
         labels.append(f"position {p} even-odd angles")

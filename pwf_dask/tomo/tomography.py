@@ -406,6 +406,8 @@ def corrected_slices(slices, volume: str, mode: str, far_masks=None):
         return slices
     if mode != "auto":
         return remove_background(slices)
+    if far_masks is None:
+        raise ValueError('slice_background "auto" needs far_masks: far_background_masks of the slices of delta')
     # delta's masks are its own sample-free pixels already; beta's are narrowed to its own too
     return remove_background(slices, fit_masks=far_masks, detect=volume != "delta")
 
