@@ -171,6 +171,28 @@ def test_the_truth_volume_is_the_sum_over_every_sub_sample(supersample):
         assert np.ptp(got[0]) > 0
 
 
+def test_the_cylinder_core_holds_the_cylinders_material_alone():
+    """Phantom.cylinder_core: on the truth volume every voxel it keeps is cellulose (a bead
+    margin of one voxel keeps the supersampled beads' edges out), and it keeps the core's
+    bead-free voxels: a mask of the cylinder's measures that no bead can lift."""
+    from dataclasses import replace
+
+    from pwf_dask.physics.materials import delta_beta
+    from pwf_dask.simulation import default_phantom, refractive_index_volume
+
+    ph = default_phantom(60e-6, np.random.default_rng(3), n_beads=4, height_m=30e-6)
+    p = 1e-6
+    u, y = (np.arange(64) - 31.5) * p, (np.arange(32) - 15.5) * p
+    delta, beta = refractive_index_volume(ph, y, u, u, 12_000)
+    dc, bc = delta_beta("cellulose", 12_000)
+    core = ph.cylinder_core(y, u, u, bead_margin_m=p)
+    np.testing.assert_allclose(delta[core], dc, rtol=1e-6)
+    np.testing.assert_allclose(beta[core], bc, rtol=1e-6)
+    whole = replace(ph, spheres=()).cylinder_core(y, u, u)  # no bead excluded
+    assert 0.2 < 1 - core.sum() / whole.sum() < 0.9  # the beads take part of the core
+    assert not np.allclose(delta[whole], dc)
+
+
 def disc_slice(radius_frac: float, rng, n: int = 201):
     """(slice, disc, r, y, x): a disc of delta 1 centred on the axis, ``radius_frac`` of the
     field of view's radius, with 1 % of noise; coordinates in field-of-view radii."""
