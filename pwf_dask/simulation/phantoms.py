@@ -66,11 +66,18 @@ class Phantom:
             b_int = b_int + (bs - (bc if inside else 0.0)) * ch
         return d_int, b_int
 
-    def cylinder_core(self, y_m, v_m, u_m, radius_fraction: float = 0.5, bead_margin_m: float = 0.0):
+    def cylinder_core(
+        self,
+        y_m: np.ndarray,
+        v_m: np.ndarray,
+        u_m: np.ndarray,
+        radius_fraction: float = 0.5,
+        bead_margin_m: float = 0.0,
+    ) -> np.ndarray:
         """Boolean (y, v, u) mask of the cylinder's own material: within ``radius_fraction`` of
         its radius from the axis and more than ``bead_margin_m`` outside every sphere. Where a
         measure of the cylinder includes its beads (a quarter of the demo's core), glass's
-        beta, several times cellulose's, lifts even a median of the noisy beta (docs/validation.md)."""
+        beta, ten times cellulose's at 10 keV, lifts even a median of the noisy beta (docs/validation.md)."""
         yy, vv, uu = np.meshgrid(np.asarray(y_m), np.asarray(v_m), np.asarray(u_m), indexing="ij")
         core = np.hypot(vv - self.cylinder_v_m, uu - self.cylinder_u_m) < radius_fraction * self.cylinder_radius_m
         for sp in self.spheres:
