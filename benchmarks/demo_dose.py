@@ -70,20 +70,24 @@ def run(work: Path, photons: float, method: str, k: int) -> dict:
     return rows
 
 
-def _cylinder_errors(ds) -> dict:
-    """The cylinder's delta and beta (the mean of its bead-free core inside half its radius,
-    position 0; :meth:`~pwf_dask.simulation.Phantom.cylinder_core`) against xraydb's cellulose."""
-    from pwf_dask.physics.materials import delta_beta
+def cylinder_values(ds, p: int = 0) -> tuple[float, float]:
+    """Mean delta and beta of a reconstruction's simulated cylinder inside half its radius, its
+    beads' voxels left out (:meth:`~pwf_dask.simulation.Phantom.cylinder_core`), at diffuser
+    position ``p``: glass's beta is ten times cellulose's, and a quarter of the demo's core is bead."""
     from pwf_dask.simulation.phantoms import CORE_BEAD_MARGIN_PX, phantom_from_json
 
     ph = phantom_from_json(ds.attrs["simulation_phantom"])
     margin_m = CORE_BEAD_MARGIN_PX * ds.attrs["pixel_size_m"]
     core = ph.cylinder_core(ds.y.values, ds.v.values, ds.u.values, bead_margin_m=margin_m)
-    dc, bc = delta_beta("cellulose", ds.attrs["energy_eV"])
-    return {
-        "cylinder_delta_err": float(ds.delta[0].values[core].mean() / dc - 1),
-        "cylinder_beta_err": float(ds.beta[0].values[core].mean() / bc - 1),
-    }
+    return float(ds.delta[p].values[core].mean()), float(ds.beta[p].values[core].mean())
+
+
+def _cylinder_errors(ds) -> dict:
+    """The cylinder's delta and beta (:func:`cylinder_values`, position 0) against xraydb's cellulose."""
+    from pwf_dask.physics.materials import delta_beta
+
+    (d, b), (dc, bc) = cylinder_values(ds), delta_beta("cellulose", ds.attrs["energy_eV"])
+    return {"cylinder_delta_err": d / dc - 1, "cylinder_beta_err": b / bc - 1}
 
 
 def main(argv=None) -> list[dict]:

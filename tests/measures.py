@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+from benchmarks.demo_dose import cylinder_values  # noqa: F401 (the tests' measure too)
 from pwf_dask.physics.materials import delta_beta
 from pwf_dask.pipeline import workflow
 from pwf_dask.simulation import phantom_from_json, simulate_scan
-from pwf_dask.simulation.phantoms import CORE_BEAD_MARGIN_PX
 
 
 def kwargs(sim, **extra):
@@ -37,17 +37,6 @@ def bead_values(ds, p):
     Y, V, U = np.meshgrid(ds.y.values, ds.v.values, ds.u.values, indexing="ij")
     ins = (Y - bead.y_m) ** 2 + (V - bead.v_m) ** 2 + (U - bead.u_m) ** 2 < (0.5 * bead.radius_m) ** 2
     return float(ds.delta[p].values[ins].mean()), float(ds.beta[p].values[ins].mean())
-
-
-def cylinder_values(ds, p):
-    """Mean delta and beta of a reconstruction's simulated cylinder inside half its radius,
-    its beads' voxels left out (:meth:`~pwf_dask.simulation.Phantom.cylinder_core`), at
-    diffuser position ``p``: glass's beta is several times cellulose's, and a quarter of the
-    demo's core is bead."""
-    ph = phantom_from_json(ds.attrs["simulation_phantom"])
-    margin_m = CORE_BEAD_MARGIN_PX * ds.attrs["pixel_size_m"]
-    core = ph.cylinder_core(ds.y.values, ds.v.values, ds.u.values, bead_margin_m=margin_m)
-    return float(ds.delta[p].values[core].mean()), float(ds.beta[p].values[core].mean())
 
 
 def under_papers_fit(ds, tmp_path):

@@ -73,8 +73,8 @@ def test_cylinder_delta_within_20_percent(demo_recon):
 
 
 def test_cylinder_beta_within_25_percent(demo_recon):
-    """The cellulose's own beta (its bead-free core; cellulose attenuates ~1/1000 of its
-    phase here, so beta is the noisiest number of the scan): -10.3 % / +2.9 % at the two
+    """The cellulose's own beta (its bead-free core; cellulose's beta is 1/637 of its delta
+    at 10 keV, so beta is the noisiest number of the scan): -10.3 % / +2.9 % at the two
     positions with every default. Converged, -8.6 % / +4.3 % bare (the default "auto" on the
     demo) against -33.0 % / -19.6 % under the paper's slice fit, which takes beta's positive
     level beyond the rim's artefacts (+0.2 to +0.6 of cellulose's beta at 1.25-2 radii) as
