@@ -128,10 +128,24 @@ WHY_SCENES = ((96, "P2000", 2), (48, "P3000", 0))
 WHY_ALPHAS = ("0.1+0.05j", "0.1+0.01j", "0.1+0.001j")
 
 
-def why_rows(rows: int, grain: str, seed: int) -> list[dict]:
-    """One draw taken apart: noise, calibration, the diffuser estimate, the regularizer."""
+def true_diffuser(t: np.ndarray, setup: SpeckleSetup, lengths: dict) -> np.ndarray:
+    """The simulator's diffuser ``t`` (oversample 1) cut to the grid PWF's diffuser takes for
+    ``setup``'s frame and ``lengths``, to pass as ``diffuser=``."""
     from pwf_dask.retrieval import diffuser_grid
 
+    pad, grid = diffuser_grid(
+        setup.shape,
+        energy_eV=setup.energy_eV,
+        pixel_size_m=setup.pixel_size_m,
+        diffuser_detector_distance_m=setup.diffuser_detector_distance_m,
+        **lengths,
+    )
+    m = setup.margin_px
+    return t[m - pad : m - pad + grid[0], m - pad : m - pad + grid[1]].astype(np.complex64)
+
+
+def why_rows(rows: int, grain: str, seed: int) -> list[dict]:
+    """One draw taken apart: noise, calibration, the diffuser estimate, the regularizer."""
     shape = (rows, WIDTH_PX)
     setup = SpeckleSetup(shape=shape, photons=1e4, oversample=1, margin_px=64, **GRAINS[grain])
     p, geometry = setup.pixel_size_m, setup.geometry()
@@ -146,15 +160,7 @@ def why_rows(rows: int, grain: str, seed: int) -> list[dict]:
         coherence_length_x_m=setup.coherence_length_x_m, coherence_length_y_m=setup.coherence_length_y_m
     )
     calibrated = calibrated_lengths(noisy[0], setup)
-    pad, grid = diffuser_grid(
-        shape,
-        energy_eV=setup.energy_eV,
-        pixel_size_m=p,
-        diffuser_detector_distance_m=setup.diffuser_detector_distance_m,
-        **true_lengths,
-    )
-    m = setup.margin_px
-    true_t = t[m - pad : m - pad + grid[0], m - pad : m - pad + grid[1]].astype(np.complex64)
+    true_t = true_diffuser(t, setup, true_lengths)
     clean = (reference.astype(np.float32), sample.astype(np.float32))
     exact = dict(diffuser=true_t, field_upsample=1, max_iter=3000, **true_lengths)
     start = sim._bin(psi.real) + 1j * truth

@@ -24,6 +24,8 @@
 #   edge_step.*        ~14 min: where the camera frame's 5 % of phase goes (start, alpha, prior)
 #   cylinder_rows.*    ~25 min: a wide weak cylinder's phase at 48-768 rows, three grains, three draws
 #                      (cylinder_rows_why.*: --why, ~5 min: two low draws taken apart, noise to regularizer)
+#   cylinder_draws.*   ~14 min: the demo scan's cylinder in the slice over 8 seeds, P3000 and 1.2 um grains
+#                      (cylinder_draws_why.*: --why, ~4 min: 8 diffuser draws, estimated and true t, noise-free)
 #   coherence_sensitivity.* ~12 min: phase gain against coherence-length error (0.7-1.3x), every other default
 #   coarse_start.*     ~25 min: a coarse-to-fine start (2x2 binned solve) against zero and the true psi
 #   probe_window.*     ~7 min: "auto"'s diffuser probe on a window of wide frames against the whole frame
@@ -60,6 +62,8 @@ case "${1:-all}" in
   edge-step) "$(dirname "$PWF")/python" -m benchmarks.edge_step --out "$OUT" ;;
   cylinder-rows) "$(dirname "$PWF")/python" -m benchmarks.cylinder_rows --out "$OUT" ;;
   cylinder-why) "$(dirname "$PWF")/python" -m benchmarks.cylinder_rows --why --out "$OUT" ;;
+  cylinder-draws) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --out "$OUT" ;;
+  cylinder-draws-why) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --why --out "$OUT" ;;
   coherence-sensitivity) "$(dirname "$PWF")/python" -m benchmarks.coherence_sensitivity --out "$OUT" ;;
   coarse-start) "$(dirname "$PWF")/python" -m benchmarks.coarse_start --curve --out "$OUT" ;;
   probe-window) "$(dirname "$PWF")/python" -m benchmarks.probe_window --out "$OUT" ;;
@@ -75,6 +79,6 @@ case "${1:-all}" in
   fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --part all --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why coherence-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|coherence-sensitivity|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why coherence-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|cylinder-draws|cylinder-draws-why|coherence-sensitivity|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
 esac

@@ -233,3 +233,35 @@ def test_gpu_checks_warm_part_starts_the_second_frame_from_the_first(cupy):
     warm, cold = rows[3], rows[5]  # the default rule
     assert warm["iterations"] < cold["iterations"]
     assert abs(warm["phase_gain"] - cold["phase_gain"]) < 0.05
+
+
+def test_cylinder_draws_reads_each_position_and_their_mean_against_the_truth():
+    """The draw benchmark's measure (benchmarks/cylinder_draws.py) on true tomograms: the
+    phantom's own delta and beta read 0 at every position; scaled by 0.9 at position 0 and 1.1
+    at position 1 they read -10 % / +10 % each and 0 in the positions' mean, which is the
+    mean of the two tomograms, not of two numbers that could hide a level."""
+    import numpy as np
+    import xarray as xr
+
+    from benchmarks.cylinder_draws import core_errors, spread
+    from pwf_dask.simulation import phantom_to_json, refractive_index_volume, scan_phantom
+
+    p, e = 1e-6, 10e3
+    ph = scan_phantom((24, 64), p, seed=0)
+    y = (np.arange(24) - 11.5) * p
+    u = (np.arange(64) - 31.5) * p
+    d, b = refractive_index_volume(ph, y, u, u, e)
+    scale = np.array([0.9, 1.1])[:, None, None, None]
+    ds = xr.Dataset(
+        {"delta": (("position", "y", "v", "u"), scale * d), "beta": (("position", "y", "v", "u"), scale * b)},
+        coords={"y": y, "v": u, "u": u},
+        attrs={"simulation_phantom": phantom_to_json(ph), "pixel_size_m": p, "energy_eV": e},
+    )
+    errs = core_errors(ds)
+    exact = core_errors(ds.isel(position=[0]) / 0.9)
+    assert abs(exact["delta_err_p0"]) < 0.02 and abs(exact["beta_err_p0"]) < 0.02
+    truth = 1 + exact["delta_err_p0"]
+    assert errs["delta_err_p0"] == pytest.approx(0.9 * truth - 1, abs=1e-12)
+    assert errs["delta_err_p1"] == pytest.approx(1.1 * truth - 1, abs=1e-12)
+    assert errs["delta_err_mean"] == pytest.approx(truth - 1, abs=1e-12)
+    assert spread([-0.1, 0.1]) == "+0.0 | 10.0 | -10.0 to +10.0"

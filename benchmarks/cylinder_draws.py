@@ -1,0 +1,214 @@
+"""The demo scan's wide weak cylinder over diffuser draws, on P3000 and on 1.2 um grains (issue #27).
+
+Sessions 76-79 read the demo scan's cylinder (seed 0) 11 % deep in the bare slice on 1.2 um
+grains and 4 % shallow on P3000, and took the sign for the grain's. This benchmark asks how
+much of that one number is the draw. It simulates the demo scan (48 x 128 px, 31 angles, the
+rotation axis 2.5 px off centre, raw counts, 2 diffuser positions, the paper's optics, 1e4
+ph/px) for each seed and grain, reconstructs it with every default, and reads the cylinder's
+delta and beta in its bead-free core (:func:`benchmarks.demo_dose.cylinder_values`) at each
+position, under the default slice background ("auto") and the paper's fit ("quadratic"), and
+in the mean of the two positions' tomograms. The cylinder sits on the rotation axis, so every
+angle of a position projects it onto the same pixels of the same diffuser: a draw's error is
+common to its angles and averages only over positions.
+
+    python -m benchmarks.cylinder_draws [--out benchmarks/results] [--seeds 0 1 ...]
+    python -m benchmarks.cylinder_draws --why [--out benchmarks/results]
+
+Writes ``cylinder_draws.md`` and ``.csv`` (about 14 min on 2 cores for 8 seeds). ``--why``
+(``cylinder_draws_why.md`` and ``.csv``, about 4 min) takes the draw apart on single
+projections at 0 deg on the detector grid (oversample 1, so that the true diffuser is a t PWF's
+grid can hold), noise-free, with the true lengths, the phantom fixed and only the diffuser
+drawn anew: the default diffuser estimate, the true t, and the true t at a fiftieth of the
+default phase regularization, each to convergence or 3000 iterations.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.cylinder_rows import GRAINS as ALL_GRAINS
+from benchmarks.cylinder_rows import cylinder_measures, true_diffuser
+from benchmarks.reporting import device_name, write_rows_csv
+
+GRAINS = {g: ALL_GRAINS[g] for g in ("P3000", "1.2 um")}
+SEEDS = tuple(range(8))
+ANGLES = 31
+AXIS_OFFSET_PX = 2.5
+SLICE_BACKGROUNDS = ("auto", "quadratic")
+#: --why: the diffuser draws (the phantom stays seed 0's) and the cases
+WHY_SEEDS = tuple(range(8))
+WHY_ALPHA = 0.1 + 0.001j
+WHY_MAX_ITER = 3000
+
+
+def core_errors(ds) -> dict:
+    """The cylinder's core delta and beta against cellulose at each position and in the mean
+    of the positions' tomograms (relative errors)."""
+    from benchmarks.demo_dose import cylinder_values
+    from pwf_dask.physics.materials import delta_beta
+
+    dc, bc = delta_beta("cellulose", ds.attrs["energy_eV"])
+    mean = ds.mean("position", keepdims=True, keep_attrs=True)
+    out = {}
+    for name, d_s, p in [*((f"p{p}", ds, p) for p in range(ds.sizes["position"])), ("mean", mean, 0)]:
+        d, b = cylinder_values(d_s, p)
+        out[f"delta_err_{name}"], out[f"beta_err_{name}"] = d / dc - 1, b / bc - 1
+    return out
+
+
+def scan_rows(work: Path, grain: str, seed: int) -> list[dict]:
+    """One demo scan of ``grain`` and ``seed`` through retrieve and tomo, a row per slice mode."""
+    import xarray as xr
+
+    from pwf_dask.pipeline.workflow import retrieve_scan, tomo_scan
+    from pwf_dask.simulation import simulate_scan
+
+    scan, recon = work / f"scan_{seed}.zarr", work / f"recon_{seed}.zarr"
+    simulate_scan(
+        scan,
+        preset="demo",
+        angles=ANGLES,
+        seed=seed,
+        rotation_axis_offset_px=AXIS_OFFSET_PX,
+        progress=False,
+        **GRAINS[grain],
+    )
+    t0 = time.perf_counter()
+    retrieve_scan(scan, recon)
+    rows = []
+    for mode in SLICE_BACKGROUNDS:
+        tomo_scan(recon, slice_background=mode)
+        ds = xr.open_zarr(recon)
+        rows.append(
+            {
+                "grain": grain,
+                "seed": seed,
+                "slice_background": mode,
+                **core_errors(ds[["delta", "beta"]].load().assign_attrs(ds.attrs)),
+                "converged": float(ds.converged.values.mean()),
+                "wall_s": time.perf_counter() - t0,
+            }
+        )
+    return rows
+
+
+def why_rows(grain: str, seed: int) -> list[dict]:
+    """One diffuser draw on the detector grid, noise-free, true lengths: what the draw is."""
+    from pwf_dask.retrieval import retrieve_projection
+    from pwf_dask.simulation import SpeckleSetup, SpeckleSimulator, scan_phantom
+
+    shape = (48, 128)
+    setup = SpeckleSetup(shape=shape, photons=np.inf, oversample=1, margin_px=64, **GRAINS[grain])
+    setup.rotation_axis_offset_m = AXIS_OFFSET_PX * setup.pixel_size_m
+    phantom = dataclasses.replace(scan_phantom(shape, setup.pixel_size_m, seed=0), spheres=())
+    sim = SpeckleSimulator(setup, seed=seed)
+    t = sim.diffuser()
+    reference, (field_, psi) = sim.intensity(None, t), sim.sample_field(phantom, 0.0)
+    sample, truth = sim.intensity(field_, t).astype(np.float32), sim._bin(psi.imag)
+    lengths = dict(coherence_length_x_m=setup.coherence_length_x_m, coherence_length_y_m=setup.coherence_length_y_m)
+    exact = dict(diffuser=true_diffuser(t, setup, lengths), field_upsample=1, max_iter=WHY_MAX_ITER)
+    cases = {"estimated t": {}, "true t": exact, f"true t, alpha {WHY_ALPHA}": dict(exact, alpha=WHY_ALPHA)}
+    out = []
+    for case, opts in cases.items():
+        res = retrieve_projection(sample, reference.astype(np.float32), **setup.geometry(), **lengths, **opts)
+        gain = cylinder_measures(np.asarray(res.phase), truth)["gain"]
+        out.append({"grain": grain, "seed": seed, "case": case, "gain": gain, "iterations": res.iterations})
+        print(f"why {grain} diffuser seed {seed} {case}: gain {gain:.3f} ({res.iterations} its)", flush=True)
+    return out
+
+
+def spread(values) -> str:
+    """median, rms about 0 and range of relative errors, in %."""
+    v = 100 * np.asarray(values)
+    return f"{np.median(v):+.1f} | {np.sqrt(np.mean(v**2)):.1f} | {v.min():+.1f} to {v.max():+.1f}"
+
+
+def summary_lines(rows: list[dict], seeds) -> list[str]:
+    lines = [
+        f"# The demo's wide weak cylinder over diffuser draws ({device_name(np)})",
+        "",
+        f"`python -m benchmarks.cylinder_draws`: the demo scan ({ANGLES} angles, axis {AXIS_OFFSET_PX} px off centre, "
+        f"raw counts, 2 positions, 1e4 ph/px, every default), seeds {', '.join(map(str, seeds))}; the cylinder's "
+        "bead-free core against cellulose. Single positions: both positions of every seed; mean: the two "
+        "positions' tomograms averaged, one value per seed; rms about zero.",
+        "",
+        "| grain | slice background | quantity | median % | rms % | range % |",
+        "|---|---|---|---:|---:|---|",
+    ]
+    for grain in dict.fromkeys(r["grain"] for r in rows):
+        for mode in SLICE_BACKGROUNDS:
+            rs = [r for r in rows if r["grain"] == grain and r["slice_background"] == mode]
+            for q in ("delta", "beta"):
+                single = [r[f"{q}_err_p{p}"] for r in rs for p in (0, 1)]
+                mean = [r[f"{q}_err_mean"] for r in rs]
+                for label, values in ((f"{q}, single positions", single), (f"{q}, mean of 2", mean)):
+                    lines.append(f"| {grain} | {mode} | {label} | {spread(values)} |")
+    lines += [
+        "",
+        "| grain | seed | slice background | delta p0 / p1 / mean % | beta p0 / p1 / mean % |",
+        "|---|---:|---|---|---|",
+    ]
+    for r in rows:
+        d, b = (" / ".join(f"{100 * r[f'{q}_err_{k}']:+.1f}" for k in ("p0", "p1", "mean")) for q in ("delta", "beta"))
+        lines.append(f"| {r['grain']} | {r['seed']} | {r['slice_background']} | {d} | {b} |")
+    return lines
+
+
+def why_lines(rows: list[dict]) -> list[str]:
+    lines = [
+        f"# What the cylinder's draw is: one projection per diffuser draw ({device_name(np)})",
+        "",
+        "`python -m benchmarks.cylinder_draws --why`: the demo's cylinder alone at 0 deg (phantom seed 0, "
+        f"axis {AXIS_OFFSET_PX} px off centre), 48 x 128 px on the detector grid, noise-free, the true "
+        f"lengths; only the diffuser is drawn anew. The true t runs to convergence or {WHY_MAX_ITER} iterations.",
+        "",
+        "| grain | case | gain: median | range | each draw |",
+        "|---|---|---:|---|---|",
+    ]
+    for grain in dict.fromkeys(r["grain"] for r in rows):
+        for case in dict.fromkeys(r["case"] for r in rows):
+            g = [r["gain"] for r in rows if r["grain"] == grain and r["case"] == case]
+            lines.append(
+                f"| {grain} | {case} | {np.median(g):.3f} | {min(g):.3f}-{max(g):.3f} | "
+                + " ".join(f"{x:.2f}" for x in g)
+                + " |"
+            )
+    return lines
+
+
+def main(argv=None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="benchmarks/results")
+    ap.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
+    ap.add_argument("--grains", nargs="+", default=list(GRAINS), choices=list(GRAINS))
+    ap.add_argument("--why", action="store_true", help="take the draw apart on single projections instead")
+    args = ap.parse_args(argv)
+    if args.why:
+        rows = [r for g in args.grains for s in WHY_SEEDS for r in why_rows(g, s)]
+        out = write_rows_csv(args.out, "cylinder_draws_why.csv", rows)
+        (out / "cylinder_draws_why.md").write_text("\n".join(why_lines(rows)) + "\n")
+        return rows
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="pwf-cylinder-draws-") as tmp:
+        for grain in args.grains:
+            for seed in args.seeds:
+                for r in scan_rows(Path(tmp) / grain.replace(" ", ""), grain, seed):
+                    rows.append(r)
+                    print(
+                        f"{grain} seed {seed} {r['slice_background']}: delta {100 * r['delta_err_p0']:+.1f} / "
+                        f"{100 * r['delta_err_p1']:+.1f} / mean {100 * r['delta_err_mean']:+.1f} %",
+                        flush=True,
+                    )
+    out = write_rows_csv(args.out, "cylinder_draws.csv", rows)
+    (out / "cylinder_draws.md").write_text("\n".join(summary_lines(rows, args.seeds)) + "\n")
+    return rows
+
+
+if __name__ == "__main__":
+    main()
