@@ -1,4 +1,4 @@
-"""The demo scan's wide weak cylinder over diffuser draws, on P3000 and on 1.2 um grains (issue #27).
+"""The demo scan's wide weak cylinder over diffuser draws, on P3000, finer and coarser grains (issue #27).
 
 Sessions 76-79 read the demo scan's cylinder (seed 0) 11 % deep in the bare slice on 1.2 um
 grains and 4 % shallow on P3000, and took the sign for the grain's. This benchmark asks how
@@ -11,11 +11,12 @@ in the mean of the two positions' tomograms. The cylinder sits on the rotation a
 angle of a position projects it onto the same pixels of the same diffuser: a draw's error is
 common to its angles and averages only over positions.
 
-    python -m benchmarks.cylinder_draws [--out benchmarks/results] [--seeds 0 1 ...]
+    python -m benchmarks.cylinder_draws [--out benchmarks/results] [--seeds 0 1 ...] [--photons 1e3]
     python -m benchmarks.cylinder_draws --why [--out benchmarks/results]
 
-Writes ``cylinder_draws.md`` and ``.csv`` (about 14 min on 2 cores for 8 seeds). ``--why``
-(``cylinder_draws_why.md`` and ``.csv``, about 4 min) takes the draw apart on single
+Writes ``cylinder_draws.md`` and ``.csv`` (about 21 min on 2 cores for 8 seeds and 3 grains; at another
+``--photons`` ``cylinder_draws_1e3.md`` and so on). ``--why``
+(``cylinder_draws_why.md`` and ``.csv``, about 6 min) takes the draw apart on single
 projections at 0 deg on the detector grid (oversample 1, so that the true diffuser is a t PWF's
 grid can hold), noise-free, with the true lengths, the phantom fixed and only the diffuser
 drawn anew: the default diffuser estimate, the true t, and the true t at a fiftieth of the
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -36,11 +38,14 @@ from benchmarks.cylinder_rows import GRAINS as ALL_GRAINS
 from benchmarks.cylinder_rows import cylinder_measures, true_diffuser
 from benchmarks.reporting import device_name, write_rows_csv
 
-GRAINS = {g: ALL_GRAINS[g] for g in ("P3000", "1.2 um")}
+#: the paper's P3000, a finer grain (1.2 um) and a coarser sandpaper (P2000, 10.3 um grains)
+GRAINS = {g: ALL_GRAINS[g] for g in ("P3000", "1.2 um", "P2000")}
 SEEDS = tuple(range(8))
 ANGLES = 31
 AXIS_OFFSET_PX = 2.5
 SLICE_BACKGROUNDS = ("auto", "quadratic")
+#: the demo preset's dose (ph/px); ``--photons`` writes files of their own beside
+PHOTONS = 1e4
 #: --why: the diffuser draws (the phantom stays seed 0's) and the cases
 WHY_SEEDS = tuple(range(8))
 WHY_ALPHA = 0.1 + 0.001j
@@ -62,7 +67,7 @@ def core_errors(ds) -> dict:
     return out
 
 
-def scan_rows(work: Path, grain: str, seed: int) -> list[dict]:
+def scan_rows(work: Path, grain: str, seed: int, photons: float = PHOTONS) -> list[dict]:
     """One demo scan of ``grain`` and ``seed`` through retrieve and tomo, a row per slice mode."""
     import xarray as xr
 
@@ -76,6 +81,7 @@ def scan_rows(work: Path, grain: str, seed: int) -> list[dict]:
         angles=ANGLES,
         seed=seed,
         rotation_axis_offset_px=AXIS_OFFSET_PX,
+        photons=photons,
         progress=False,
         **GRAINS[grain],
     )
@@ -89,6 +95,7 @@ def scan_rows(work: Path, grain: str, seed: int) -> list[dict]:
             {
                 "grain": grain,
                 "seed": seed,
+                "photons": photons,
                 "slice_background": mode,
                 **core_errors(ds[["delta", "beta"]].load().assign_attrs(ds.attrs)),
                 "converged": float(ds.converged.values.mean()),
@@ -123,18 +130,25 @@ def why_rows(grain: str, seed: int) -> list[dict]:
     return out
 
 
+def dose(photons: float) -> str:
+    """1e3 for 1000 ph/px: the files' and the tables' way of naming a dose."""
+    mantissa, exponent = f"{photons:e}".split("e")
+    return f"{mantissa.rstrip('0').rstrip('.')}e{int(exponent)}"
+
+
 def spread(values) -> str:
     """median, rms about 0 and range of relative errors, in %."""
     v = 100 * np.asarray(values)
     return f"{np.median(v):+.1f} | {np.sqrt(np.mean(v**2)):.1f} | {v.min():+.1f} to {v.max():+.1f}"
 
 
-def summary_lines(rows: list[dict], seeds) -> list[str]:
+def summary_lines(rows: list[dict], seeds, command: str = "python -m benchmarks.cylinder_draws") -> list[str]:
     lines = [
         f"# The demo's wide weak cylinder over diffuser draws ({device_name(np)})",
         "",
-        f"`python -m benchmarks.cylinder_draws`: the demo scan ({ANGLES} angles, axis {AXIS_OFFSET_PX} px off centre, "
-        f"raw counts, 2 positions, 1e4 ph/px, every default), seeds {', '.join(map(str, seeds))}; the cylinder's "
+        f"`{command}`: the demo scan ({ANGLES} angles, axis {AXIS_OFFSET_PX} px off centre, "
+        f"raw counts, 2 positions, {dose(rows[0]['photons'])} ph/px, every default), "
+        f"seeds {', '.join(map(str, seeds))}; the cylinder's "
         "bead-free core against cellulose. Single positions: both positions of every seed; mean: the two "
         "positions' tomograms averaged, one value per seed; rms about zero.",
         "",
@@ -187,6 +201,7 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
     ap.add_argument("--grains", nargs="+", default=list(GRAINS), choices=list(GRAINS))
+    ap.add_argument("--photons", type=float, default=PHOTONS, help="the scans' dose, ph/px")
     ap.add_argument("--why", action="store_true", help="take the draw apart on single projections instead")
     args = ap.parse_args(argv)
     if args.why:
@@ -198,15 +213,20 @@ def main(argv=None) -> list[dict]:
     with tempfile.TemporaryDirectory(prefix="pwf-cylinder-draws-") as tmp:
         for grain in args.grains:
             for seed in args.seeds:
-                for r in scan_rows(Path(tmp) / grain.replace(" ", ""), grain, seed):
+                for r in scan_rows(Path(tmp) / grain.replace(" ", ""), grain, seed, args.photons):
                     rows.append(r)
                     print(
                         f"{grain} seed {seed} {r['slice_background']}: delta {100 * r['delta_err_p0']:+.1f} / "
                         f"{100 * r['delta_err_p1']:+.1f} / mean {100 * r['delta_err_mean']:+.1f} %",
                         flush=True,
                     )
-    out = write_rows_csv(args.out, "cylinder_draws.csv", rows)
-    (out / "cylinder_draws.md").write_text("\n".join(summary_lines(rows, args.seeds)) + "\n")
+    name = "cylinder_draws" if args.photons == PHOTONS else f"cylinder_draws_{dose(args.photons)}"
+    out = write_rows_csv(args.out, f"{name}.csv", rows)
+    given = list(sys.argv[1:] if argv is None else argv)
+    if "--out" in given:  # where the files went is not how they were made
+        del given[given.index("--out") : given.index("--out") + 2]
+    command = " ".join(["python -m benchmarks.cylinder_draws", *(f"'{a}'" if " " in a else a for a in given)])
+    (out / f"{name}.md").write_text("\n".join(summary_lines(rows, args.seeds, command)) + "\n")
     return rows
 
 

@@ -24,8 +24,8 @@
 #   edge_step.*        ~14 min: where the camera frame's 5 % of phase goes (start, alpha, prior)
 #   cylinder_rows.*    ~25 min: a wide weak cylinder's phase at 48-768 rows, three grains, three draws
 #                      (cylinder_rows_why.*: --why, ~5 min: two low draws taken apart, noise to regularizer)
-#   cylinder_draws.*   ~14 min: the demo scan's cylinder in the slice over 8 seeds, P3000 and 1.2 um grains
-#                      (cylinder_draws_why.*: --why, ~4 min: 8 diffuser draws, estimated and true t, noise-free)
+#   cylinder_draws.*   ~21 min: the demo scan's cylinder in the slice over 8 seeds, P3000, 1.2 um, P2000
+#                      (cylinder_draws_why.*: --why, ~6 min: 8 diffuser draws, estimated and true t, noise-free)
 #   coherence_sensitivity.* ~12 min: phase gain against coherence-length error (0.7-1.3x), every other default
 #   coarse_start.*     ~25 min: a coarse-to-fine start (2x2 binned solve) against zero and the true psi
 #   probe_window.*     ~7 min: "auto"'s diffuser probe on a window of wide frames against the whole frame

@@ -243,7 +243,7 @@ def test_cylinder_draws_reads_each_position_and_their_mean_against_the_truth():
     import numpy as np
     import xarray as xr
 
-    from benchmarks.cylinder_draws import core_errors, spread
+    from benchmarks.cylinder_draws import core_errors, dose, spread
     from pwf_dask.simulation import phantom_to_json, refractive_index_volume, scan_phantom
 
     p, e = 1e-6, 10e3
@@ -265,3 +265,4 @@ def test_cylinder_draws_reads_each_position_and_their_mean_against_the_truth():
     assert errs["delta_err_p1"] == pytest.approx(1.1 * truth - 1, abs=1e-12)
     assert errs["delta_err_mean"] == pytest.approx(truth - 1, abs=1e-12)
     assert spread([-0.1, 0.1]) == "+0.0 | 10.0 | -10.0 to +10.0"
+    assert [dose(p) for p in (1e3, 1e4, 2.5e5)] == ["1e3", "1e4", "2.5e5"]  # the files' names
