@@ -44,6 +44,8 @@ SEEDS = tuple(range(8))
 ANGLES = 31
 AXIS_OFFSET_PX = 2.5
 SLICE_BACKGROUNDS = ("auto", "quadratic")
+#: what each scan reports (the row keys' prefixes) and how the tables name it
+QUANTITIES = {"delta": "cylinder delta", "beta": "cylinder beta", "bead_delta": "bead delta", "bead_beta": "bead beta"}
 #: the demo preset's dose (ph/px); ``--photons`` writes files of their own beside
 PHOTONS = 1e4
 #: --why: the diffuser draws (the phantom stays seed 0's) and the cases
@@ -53,17 +55,24 @@ WHY_MAX_ITER = 3000
 
 
 def core_errors(ds) -> dict:
-    """The cylinder's core delta and beta against cellulose at each position and in the mean
-    of the positions' tomograms (relative errors)."""
+    """The cylinder's core delta and beta against cellulose, and the largest bead's (within half
+    its radius) against glass, at each position and in the mean of the positions' tomograms
+    (relative errors)."""
     from benchmarks.demo_dose import cylinder_values
+    from benchmarks.speed_accuracy import largest_bead_core
     from pwf_dask.physics.materials import delta_beta
+    from pwf_dask.simulation import phantom_from_json
 
     dc, bc = delta_beta("cellulose", ds.attrs["energy_eV"])
+    dg, bg = delta_beta("soda-lime glass", ds.attrs["energy_eV"])
+    bead = largest_bead_core(phantom_from_json(ds.attrs["simulation_phantom"]), ds)
     mean = ds.mean("position", keepdims=True, keep_attrs=True)
     out = {}
     for name, d_s, p in [*((f"p{p}", ds, p) for p in range(ds.sizes["position"])), ("mean", mean, 0)]:
         d, b = cylinder_values(d_s, p)
         out[f"delta_err_{name}"], out[f"beta_err_{name}"] = d / dc - 1, b / bc - 1
+        out[f"bead_delta_err_{name}"] = float(d_s.delta[p].values[bead].mean() / dg - 1)
+        out[f"bead_beta_err_{name}"] = float(d_s.beta[p].values[bead].mean() / bg - 1)
     return out
 
 
@@ -143,13 +152,15 @@ def spread(values) -> str:
 
 
 def summary_lines(rows: list[dict], seeds, command: str = "python -m benchmarks.cylinder_draws") -> list[str]:
+    quantities = [q for q in QUANTITIES if f"{q}_err_p0" in rows[0]]  # files before the bead have none
     lines = [
         f"# The demo's wide weak cylinder over diffuser draws ({device_name(np)})",
         "",
         f"`{command}`: the demo scan ({ANGLES} angles, axis {AXIS_OFFSET_PX} px off centre, "
         f"raw counts, 2 positions, {dose(rows[0]['photons'])} ph/px, every default), "
         f"seeds {', '.join(map(str, seeds))}; the cylinder's "
-        "bead-free core against cellulose. Single positions: both positions of every seed; mean: the two "
+        "bead-free core against cellulose, the largest bead's (within half its radius) against glass. "
+        "Single positions: both positions of every seed; mean: the two "
         "positions' tomograms averaged, one value per seed; rms about zero.",
         "",
         "| grain | slice background | quantity | median % | rms % | range % |",
@@ -158,19 +169,24 @@ def summary_lines(rows: list[dict], seeds, command: str = "python -m benchmarks.
     for grain in dict.fromkeys(r["grain"] for r in rows):
         for mode in SLICE_BACKGROUNDS:
             rs = [r for r in rows if r["grain"] == grain and r["slice_background"] == mode]
-            for q in ("delta", "beta"):
+            for q in quantities:
                 single = [r[f"{q}_err_p{p}"] for r in rs for p in (0, 1)]
                 mean = [r[f"{q}_err_mean"] for r in rs]
-                for label, values in ((f"{q}, single positions", single), (f"{q}, mean of 2", mean)):
+                for label, values in (
+                    (f"{QUANTITIES[q]}, single positions", single),
+                    (f"{QUANTITIES[q]}, mean of 2", mean),
+                ):
                     lines.append(f"| {grain} | {mode} | {label} | {spread(values)} |")
     lines += [
         "",
-        "| grain | seed | slice background | delta p0 / p1 / mean % | beta p0 / p1 / mean % |",
-        "|---|---:|---|---|---|",
+        "| grain | seed | slice background | "
+        + " | ".join(f"{QUANTITIES[q]} p0 / p1 / mean %" for q in quantities)
+        + " |",
+        "|---|---:|---|" + "---|" * len(quantities),
     ]
     for r in rows:
-        d, b = (" / ".join(f"{100 * r[f'{q}_err_{k}']:+.1f}" for k in ("p0", "p1", "mean")) for q in ("delta", "beta"))
-        lines.append(f"| {r['grain']} | {r['seed']} | {r['slice_background']} | {d} | {b} |")
+        cells = (" / ".join(f"{100 * r[f'{q}_err_{k}']:+.1f}" for k in ("p0", "p1", "mean")) for q in quantities)
+        lines.append(f"| {r['grain']} | {r['seed']} | {r['slice_background']} | " + " | ".join(cells) + " |")
     return lines
 
 

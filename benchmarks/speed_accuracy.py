@@ -18,6 +18,13 @@ from pwf_dask.retrieval import AUTHORS_RELEASE
 from pwf_dask.tomo import tomography
 
 
+def largest_bead_core(phantom, ds) -> np.ndarray:
+    """The voxels of ``ds``'s (y, v, u) grid within half the radius of the phantom's largest bead."""
+    bead = max(phantom.spheres, key=lambda s: s.radius_m)
+    Y, V, U = np.meshgrid(ds.y.values, ds.v.values, ds.u.values, indexing="ij")
+    return (Y - bead.y_m) ** 2 + (V - bead.v_m) ** 2 + (U - bead.u_m) ** 2 < (0.5 * bead.radius_m) ** 2
+
+
 def _tomogram_errors(recon_path) -> dict:
     """Errors of a reconstruction of a simulated scan against its analytic truth."""
     import xarray as xr
@@ -33,9 +40,7 @@ def _tomogram_errors(recon_path) -> dict:
     b = ds.beta[0].values
     inside = td > 0
     dg, bg = delta_beta("soda-lime glass", e)
-    bead = max(ph.spheres, key=lambda s: s.radius_m)
-    Y, V, U = np.meshgrid(ds.y.values, ds.v.values, ds.u.values, indexing="ij")
-    core = (Y - bead.y_m) ** 2 + (V - bead.v_m) ** 2 + (U - bead.u_m) ** 2 < (0.5 * bead.radius_m) ** 2
+    core = largest_bead_core(ph, ds)
     return {
         "delta_rmse_rel": float(np.sqrt(np.mean((d - td)[inside] ** 2)) / np.mean(td[inside])),
         "bead_delta_err": float(d[core].mean() / dg - 1),

@@ -237,9 +237,9 @@ def test_gpu_checks_warm_part_starts_the_second_frame_from_the_first(cupy):
 
 def test_cylinder_draws_reads_each_position_and_their_mean_against_the_truth():
     """The draw benchmark's measure (benchmarks/cylinder_draws.py) on true tomograms: the
-    phantom's own delta and beta read 0 at every position; scaled by 0.9 at position 0 and 1.1
-    at position 1 they read -10 % / +10 % each and 0 in the positions' mean, which is the
-    mean of the two tomograms, not of two numbers that could hide a level."""
+    phantom's own delta and beta read 0 at every position (the cylinder's core to its voxels'
+    averaging, the largest bead's exactly); scaled by 0.9 at position 0 and 1.1 at position 1
+    they read -10 % / +10 % each and 0 in the positions' mean, the mean of the two tomograms."""
     import numpy as np
     import xarray as xr
 
@@ -264,5 +264,10 @@ def test_cylinder_draws_reads_each_position_and_their_mean_against_the_truth():
     assert errs["delta_err_p0"] == pytest.approx(0.9 * truth - 1, abs=1e-12)
     assert errs["delta_err_p1"] == pytest.approx(1.1 * truth - 1, abs=1e-12)
     assert errs["delta_err_mean"] == pytest.approx(truth - 1, abs=1e-12)
+    # the largest bead's core is glass through and through: exact, then scaled like the cylinder
+    assert exact["bead_delta_err_p0"] == pytest.approx(0.0, abs=1e-9)
+    assert exact["bead_beta_err_p0"] == pytest.approx(0.0, abs=1e-9)
+    assert errs["bead_delta_err_p0"] == pytest.approx(-0.1) and errs["bead_beta_err_p1"] == pytest.approx(0.1)
+    assert errs["bead_delta_err_mean"] == pytest.approx(0.0, abs=1e-9)
     assert spread([-0.1, 0.1]) == "+0.0 | 10.0 | -10.0 to +10.0"
     assert [dose(p) for p in (1e3, 1e4, 2.5e5)] == ["1e3", "1e4", "2.5e5"]  # the files' names
