@@ -11,11 +11,11 @@ in the mean of the two positions' tomograms. The cylinder sits on the rotation a
 angle of a position projects it onto the same pixels of the same diffuser: a draw's error is
 common to its angles and averages only over positions.
 
-    python -m benchmarks.cylinder_draws [--out benchmarks/results] [--seeds 0 1 ...] [--photons 1e3]
+    python -m benchmarks.cylinder_draws [--out benchmarks/results] [--seeds 0 1 ...] [--photons 1e3] [--rows 96]
     python -m benchmarks.cylinder_draws --why [--out benchmarks/results]
 
 Writes ``cylinder_draws.md`` and ``.csv`` (about 21 min on 2 cores for 8 seeds and 3 grains; at another
-``--photons`` ``cylinder_draws_1e3.md`` and so on). ``--why``
+``--photons`` ``cylinder_draws_1e3.md``, at another ``--rows`` ``cylinder_draws_96rows.md``). ``--why``
 (``cylinder_draws_why.md`` and ``.csv``, about 6 min) takes the draw apart on single
 projections at 0 deg on the detector grid (oversample 1, so that the true diffuser is a t PWF's
 grid can hold), noise-free, with the true lengths, the phantom fixed and only the diffuser
@@ -46,8 +46,9 @@ AXIS_OFFSET_PX = 2.5
 SLICE_BACKGROUNDS = ("auto", "quadratic")
 #: what each scan reports (the row keys' prefixes) and how the tables name it
 QUANTITIES = {"delta": "cylinder delta", "beta": "cylinder beta", "bead_delta": "bead delta", "bead_beta": "bead beta"}
-#: the demo preset's dose (ph/px); ``--photons`` writes files of their own beside
+#: the demo preset's dose (ph/px) and frame; ``--photons`` and ``--rows`` write files of their own beside
 PHOTONS = 1e4
+ROWS, WIDTH_PX = 48, 128
 #: --why: the diffuser draws (the phantom stays seed 0's) and the cases
 WHY_SEEDS = tuple(range(8))
 WHY_ALPHA = 0.1 + 0.001j
@@ -76,7 +77,7 @@ def core_errors(ds) -> dict:
     return out
 
 
-def scan_rows(work: Path, grain: str, seed: int, photons: float = PHOTONS) -> list[dict]:
+def scan_rows(work: Path, grain: str, seed: int, photons: float = PHOTONS, frame_rows: int = ROWS) -> list[dict]:
     """One demo scan of ``grain`` and ``seed`` through retrieve and tomo, a row per slice mode."""
     import xarray as xr
 
@@ -91,27 +92,29 @@ def scan_rows(work: Path, grain: str, seed: int, photons: float = PHOTONS) -> li
         seed=seed,
         rotation_axis_offset_px=AXIS_OFFSET_PX,
         photons=photons,
+        shape=(frame_rows, WIDTH_PX),
         progress=False,
         **GRAINS[grain],
     )
     t0 = time.perf_counter()
     retrieve_scan(scan, recon)
-    rows = []
+    out = []
     for mode in SLICE_BACKGROUNDS:
         tomo_scan(recon, slice_background=mode)
         ds = xr.open_zarr(recon)
-        rows.append(
+        out.append(
             {
                 "grain": grain,
                 "seed": seed,
                 "photons": photons,
+                "rows": frame_rows,
                 "slice_background": mode,
                 **core_errors(ds[["delta", "beta"]].load().assign_attrs(ds.attrs)),
                 "converged": float(ds.converged.values.mean()),
                 "wall_s": time.perf_counter() - t0,
             }
         )
-    return rows
+    return out
 
 
 def why_rows(grain: str, seed: int) -> list[dict]:
@@ -119,7 +122,7 @@ def why_rows(grain: str, seed: int) -> list[dict]:
     from pwf_dask.retrieval import retrieve_projection
     from pwf_dask.simulation import SpeckleSetup, SpeckleSimulator, scan_phantom
 
-    shape = (48, 128)
+    shape = (ROWS, WIDTH_PX)
     setup = SpeckleSetup(shape=shape, photons=np.inf, oversample=1, margin_px=64, **GRAINS[grain])
     setup.rotation_axis_offset_m = AXIS_OFFSET_PX * setup.pixel_size_m
     phantom = dataclasses.replace(scan_phantom(shape, setup.pixel_size_m, seed=0), spheres=())
@@ -156,7 +159,8 @@ def summary_lines(rows: list[dict], seeds, command: str = "python -m benchmarks.
     lines = [
         f"# The demo's wide weak cylinder over diffuser draws ({device_name(np)})",
         "",
-        f"`{command}`: the demo scan ({ANGLES} angles, axis {AXIS_OFFSET_PX} px off centre, "
+        f"`{command}`: the demo scan ({rows[0].get('rows', ROWS)} x {WIDTH_PX} px, {ANGLES} angles, "
+        f"axis {AXIS_OFFSET_PX} px off centre, "
         f"raw counts, 2 positions, {dose(rows[0]['photons'])} ph/px, every default), "
         f"seeds {', '.join(map(str, seeds))}; the cylinder's "
         "bead-free core against cellulose, the largest bead's (within half its radius) against glass. "
@@ -218,6 +222,7 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
     ap.add_argument("--grains", nargs="+", default=list(GRAINS), choices=list(GRAINS))
     ap.add_argument("--photons", type=float, default=PHOTONS, help="the scans' dose, ph/px")
+    ap.add_argument("--rows", type=int, default=ROWS, help="the frame's height (the demo's is 48 x 128 px)")
     ap.add_argument("--why", action="store_true", help="take the draw apart on single projections instead")
     args = ap.parse_args(argv)
     if args.why:
@@ -229,14 +234,15 @@ def main(argv=None) -> list[dict]:
     with tempfile.TemporaryDirectory(prefix="pwf-cylinder-draws-") as tmp:
         for grain in args.grains:
             for seed in args.seeds:
-                for r in scan_rows(Path(tmp) / grain.replace(" ", ""), grain, seed, args.photons):
+                for r in scan_rows(Path(tmp) / grain.replace(" ", ""), grain, seed, args.photons, args.rows):
                     rows.append(r)
                     print(
                         f"{grain} seed {seed} {r['slice_background']}: delta {100 * r['delta_err_p0']:+.1f} / "
                         f"{100 * r['delta_err_p1']:+.1f} / mean {100 * r['delta_err_mean']:+.1f} %",
                         flush=True,
                     )
-    name = "cylinder_draws" if args.photons == PHOTONS else f"cylinder_draws_{dose(args.photons)}"
+    name = "cylinder_draws" + ("" if args.photons == PHOTONS else f"_{dose(args.photons)}")
+    name += "" if args.rows == ROWS else f"_{args.rows}rows"
     out = write_rows_csv(args.out, f"{name}.csv", rows)
     given = list(sys.argv[1:] if argv is None else argv)
     if "--out" in given:  # where the files went is not how they were made

@@ -25,7 +25,8 @@
 #   cylinder_rows.*    ~25 min: a wide weak cylinder's phase at 48-768 rows, three grains, three draws
 #                      (cylinder_rows_why.*: --why, ~5 min: two low draws taken apart, noise to regularizer)
 #   cylinder_draws.*   ~21 min: the demo scan's cylinder in the slice over 8 seeds, P3000, 1.2 um, P2000
-#                      (cylinder_draws_why.*: --why, ~6 min: 8 diffuser draws, estimated and true t, noise-free)
+#                      (cylinder_draws_why.*: --why, ~6 min: 8 diffuser draws, estimated and true t, noise-free;
+#                      cylinder_draws_1e3.*: at 1e3 ph/px, ~14 min; cylinder_draws_96rows.*: 96 rows, P3000, ~10 min)
 #   coherence_sensitivity.* ~12 min: phase gain against coherence-length error (0.7-1.3x), every other default
 #   coarse_start.*     ~25 min: a coarse-to-fine start (2x2 binned solve) against zero and the true psi
 #   probe_window.*     ~7 min: "auto"'s diffuser probe on a window of wide frames against the whole frame
@@ -64,6 +65,8 @@ case "${1:-all}" in
   cylinder-why) "$(dirname "$PWF")/python" -m benchmarks.cylinder_rows --why --out "$OUT" ;;
   cylinder-draws) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --out "$OUT" ;;
   cylinder-draws-why) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --why --out "$OUT" ;;
+  cylinder-draws-1e3) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --photons 1e3 --grains P3000 "1.2 um" --out "$OUT" ;;
+  cylinder-draws-96rows) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --rows 96 --grains P3000 --out "$OUT" ;;
   coherence-sensitivity) "$(dirname "$PWF")/python" -m benchmarks.coherence_sensitivity --out "$OUT" ;;
   coarse-start) "$(dirname "$PWF")/python" -m benchmarks.coarse_start --curve --out "$OUT" ;;
   probe-window) "$(dirname "$PWF")/python" -m benchmarks.probe_window --out "$OUT" ;;
@@ -79,6 +82,6 @@ case "${1:-all}" in
   fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --part all --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why coherence-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|cylinder-draws|cylinder-draws-why|coherence-sensitivity|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|cylinder-draws|cylinder-draws-why|cylinder-draws-1e3|cylinder-draws-96rows|coherence-sensitivity|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
 esac
