@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -36,7 +35,7 @@ import numpy as np
 
 from benchmarks.cylinder_rows import GRAINS as ALL_GRAINS
 from benchmarks.cylinder_rows import cylinder_measures, true_diffuser
-from benchmarks.reporting import device_name, write_rows_csv
+from benchmarks.reporting import command_line, device_name, write_rows_csv
 
 #: the paper's P3000, a finer grain (1.2 um) and a coarser sandpaper (P2000, 10.3 um grains)
 GRAINS = {g: ALL_GRAINS[g] for g in ("P3000", "1.2 um", "P2000")}
@@ -244,10 +243,7 @@ def main(argv=None) -> list[dict]:
     name = "cylinder_draws" + ("" if args.photons == PHOTONS else f"_{dose(args.photons)}")
     name += "" if args.rows == ROWS else f"_{args.rows}rows"
     out = write_rows_csv(args.out, f"{name}.csv", rows)
-    given = list(sys.argv[1:] if argv is None else argv)
-    if "--out" in given:  # where the files went is not how they were made
-        del given[given.index("--out") : given.index("--out") + 2]
-    command = " ".join(["python -m benchmarks.cylinder_draws", *(f"'{a}'" if " " in a else a for a in given)])
+    command = command_line("benchmarks.cylinder_draws", argv)
     (out / f"{name}.md").write_text("\n".join(summary_lines(rows, args.seeds, command)) + "\n")
     return rows
 

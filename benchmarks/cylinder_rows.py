@@ -31,12 +31,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 import time
 
 import numpy as np
 
-from benchmarks.reporting import device_name, write_rows_csv
+from benchmarks.reporting import command_line, device_name, write_rows_csv
 from benchmarks.stability import calibrated_lengths
 from pwf_dask.retrieval import retrieve_projection
 from pwf_dask.simulation import SpeckleSetup, SpeckleSimulator, scan_phantom
@@ -239,10 +238,7 @@ def main(argv=None) -> list[dict]:
     rows = [r for n, grain, seed in scenes for r in scene_rows(n, grain, methods, seed)]
     # a run with more alphas writes files of its own beside the sweep's
     name = "cylinder_rows_alphas" if args.alphas else "cylinder_rows"
-    given = list(sys.argv[1:] if argv is None else argv)
-    if "--out" in given:  # where the files went is not how they were made
-        del given[given.index("--out") : given.index("--out") + 2]
-    command = " ".join(["python -m benchmarks.cylinder_rows", *given])
+    command = command_line("benchmarks.cylinder_rows", argv)
     out = write_rows_csv(args.out, f"{name}.csv", rows)
     (out / f"{name}.md").write_text("\n".join(summary_lines(rows, args.seeds, command)) + "\n")
     return rows

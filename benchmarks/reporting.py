@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import platform
+import shlex
+import sys
 import time
 from pathlib import Path
 
@@ -32,6 +34,16 @@ def interleaved_min(fns, sync, rounds: int, min_time: float = 0.15) -> list[floa
                     break
             best[i] = min(best[i], el / n)
     return best
+
+
+def command_line(module: str, argv=None) -> str:
+    """How a benchmark's files were made, for their header: ``python -m module`` and its
+    arguments (``argv``, else the process's), quoted for a shell, ``--out DIR`` left out:
+    where the files went is not how they were made."""
+    given = list(sys.argv[1:] if argv is None else argv)
+    if "--out" in given:
+        del given[given.index("--out") : given.index("--out") + 2]
+    return shlex.join(["python", "-m", module, *given])
 
 
 def device_name(xp) -> str:

@@ -271,3 +271,17 @@ def test_cylinder_draws_reads_each_position_and_their_mean_against_the_truth():
     assert errs["bead_delta_err_mean"] == pytest.approx(0.0, abs=1e-9)
     assert spread([-0.1, 0.1]) == "+0.0 | 10.0 | -10.0 to +10.0"
     assert [dose(p) for p in (1e3, 1e4, 2.5e5)] == ["1e3", "1e4", "2.5e5"]  # the files' names
+
+
+def test_a_benchmarks_header_names_the_command_that_made_it_without_its_output_folder():
+    """The results' headers (benchmarks/reporting.command_line): the arguments as given, a
+    grain with a space quoted so the line runs as printed, ``--out DIR`` left out."""
+    import shlex
+
+    from benchmarks.reporting import command_line
+
+    argv = ["--photons", "1e3", "--out", "/tmp/x", "--grains", "P3000", "1.2 um"]
+    line = command_line("benchmarks.cylinder_draws", argv)
+    assert line == "python -m benchmarks.cylinder_draws --photons 1e3 --grains P3000 '1.2 um'"
+    assert shlex.split(line)[3:] == ["--photons", "1e3", "--grains", "P3000", "1.2 um"]
+    assert command_line("benchmarks.cylinder_rows", []) == "python -m benchmarks.cylinder_rows"
