@@ -13,6 +13,7 @@ common to its angles and averages only over positions.
 
     python -m benchmarks.cylinder_draws [--out benchmarks/results] [--seeds 0 1 ...] [--photons 1e3] [--rows 96]
     python -m benchmarks.cylinder_draws --why [--out benchmarks/results]
+    python -m benchmarks.cylinder_draws --edge [--out benchmarks/results]
 
 Writes ``cylinder_draws.md`` and ``.csv`` (about 21 min on 2 cores for 8 seeds and 3 grains; at another
 ``--photons`` ``cylinder_draws_1e3.md``, at another ``--rows`` ``cylinder_draws_96rows.md``). ``--why``
@@ -20,7 +21,10 @@ Writes ``cylinder_draws.md`` and ``.csv`` (about 21 min on 2 cores for 8 seeds a
 projections at 0 deg on the detector grid (oversample 1, so that the true diffuser is a t PWF's
 grid can hold), noise-free, with the true lengths, the phantom fixed and only the diffuser
 drawn anew: the default diffuser estimate, the true t, and the true t at a fiftieth of the
-default phase regularization, each to convergence or 3000 iterations.
+default phase regularization, each to convergence or 3000 iterations. ``--edge``
+(``cylinder_draws_edge.md`` and ``.csv``, about 15 min) keeps the true t and varies the body
+instead: its outline softened (psi smoothed across the axis), its depth scaled, a weaker phase
+regularization, and the pixels PWF misfits most (the edge's) left out of the data term.
 """
 
 from __future__ import annotations
@@ -33,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.cylinder_rows import FREE_RAD, cylinder_measures, true_diffuser
 from benchmarks.cylinder_rows import GRAINS as ALL_GRAINS
-from benchmarks.cylinder_rows import cylinder_measures, true_diffuser
 from benchmarks.reporting import command_line, device_name, write_rows_csv
 
 #: the paper's P3000, a finer grain (1.2 um) and a coarser sandpaper (P2000, 10.3 um grains)
@@ -116,9 +120,10 @@ def scan_rows(work: Path, grain: str, seed: int, photons: float = PHOTONS, frame
     return out
 
 
-def why_rows(grain: str, seed: int) -> list[dict]:
-    """One diffuser draw on the detector grid, noise-free, true lengths: what the draw is."""
-    from pwf_dask.retrieval import retrieve_projection
+def why_scene(grain: str, seed: int):
+    """The ``--why`` and ``--edge`` scene: the demo's cylinder alone at 0 deg on the detector grid
+    (oversample 1), noise-free, diffuser draw ``seed``: (setup, simulator, t, psi on the simulator's
+    grid, reference, the true lengths, the options that pass the true t)."""
     from pwf_dask.simulation import SpeckleSetup, SpeckleSimulator, scan_phantom
 
     shape = (ROWS, WIDTH_PX)
@@ -127,17 +132,100 @@ def why_rows(grain: str, seed: int) -> list[dict]:
     phantom = dataclasses.replace(scan_phantom(shape, setup.pixel_size_m, seed=0), spheres=())
     sim = SpeckleSimulator(setup, seed=seed)
     t = sim.diffuser()
-    reference, (field_, psi) = sim.intensity(None, t), sim.sample_field(phantom, 0.0)
-    sample, truth = sim.intensity(field_, t).astype(np.float32), sim._bin(psi.imag)
+    reference, (_, psi) = sim.intensity(None, t).astype(np.float32), sim.sample_field(phantom, 0.0)
     lengths = dict(coherence_length_x_m=setup.coherence_length_x_m, coherence_length_y_m=setup.coherence_length_y_m)
     exact = dict(diffuser=true_diffuser(t, setup, lengths), field_upsample=1, max_iter=WHY_MAX_ITER)
+    return setup, sim, t, psi, reference, lengths, exact
+
+
+def why_rows(grain: str, seed: int) -> list[dict]:
+    """One diffuser draw on the detector grid, noise-free, true lengths: what the draw is."""
+    from pwf_dask.retrieval import retrieve_projection
+
+    setup, sim, t, psi, reference, lengths, exact = why_scene(grain, seed)
+    sample, truth = sim.intensity(np.exp(psi), t).astype(np.float32), sim._bin(psi.imag)
     cases = {"estimated t": {}, "true t": exact, f"true t, alpha {WHY_ALPHA}": dict(exact, alpha=WHY_ALPHA)}
     out = []
     for case, opts in cases.items():
-        res = retrieve_projection(sample, reference.astype(np.float32), **setup.geometry(), **lengths, **opts)
+        res = retrieve_projection(sample, reference, **setup.geometry(), **lengths, **opts)
         gain = cylinder_measures(np.asarray(res.phase), truth)["gain"]
         out.append({"grain": grain, "seed": seed, "case": case, "gain": gain, "iterations": res.iterations})
         print(f"why {grain} diffuser seed {seed} {case}: gain {gain:.3f} ({res.iterations} its)", flush=True)
+    return out
+
+
+#: --edge: (case, edge softening sigma px, depth scale, alpha or None for the default); the last
+#: case adds the sharp cylinder with the pixels its default run misfits most left out of the data
+EDGE_CASES = (
+    ("sharp (the phantom's)", 0.0, 1.0, None),
+    ("edge softened, sigma 2 px", 2.0, 1.0, None),
+    ("edge softened, sigma 6 px", 6.0, 1.0, None),
+    ("sharp, a quarter of the depth", 0.0, 0.25, None),
+    ("sharp, twice the depth", 0.0, 2.0, None),
+    ("sharp, alpha 0.1+0.01j", 0.0, 1.0, 0.1 + 0.01j),
+    ("edge softened 6 px, alpha 0.1+0.01j", 6.0, 1.0, 0.1 + 0.01j),
+)
+EDGE_MISFIT_RMS = 3.0
+EDGE_LEFT_OUT = f"sharp, pixels misfit > {EDGE_MISFIT_RMS:g} rms left out"
+
+
+def softened(psi: np.ndarray, sigma_px: float, depth_scale: float = 1.0) -> np.ndarray:
+    """The sample's psi scaled by ``depth_scale`` and smoothed across the cylinder's axis (x) by a
+    Gaussian of ``sigma_px`` simulator pixels: the same body with a blunter outline (0: as is)."""
+    from scipy.ndimage import gaussian_filter1d
+
+    psi = depth_scale * psi
+    if sigma_px == 0:
+        return psi
+    return gaussian_filter1d(psi.real, sigma_px, axis=1) + 1j * gaussian_filter1d(psi.imag, sigma_px, axis=1)
+
+
+def core_gain(phase: np.ndarray, truth: np.ndarray) -> float:
+    """The phase's level in the central half of the cylinder's width against the truth's, each
+    above the sample-free background's median (the tomogram's core, in projection)."""
+    cols = np.nonzero((truth < FREE_RAD).any(axis=0))[0]
+    quarter = (cols[-1] - cols[0]) // 4
+    core = slice(cols[0] + quarter, cols[-1] - quarter + 1)
+    level = np.median(phase[:, core]) - np.median(phase[truth > FREE_RAD])
+    return float(level / np.median(truth[:, core]))
+
+
+def edge_rows(grain: str, seed: int) -> list[dict]:
+    """One diffuser draw, noise-free, true t and lengths, the cylinder's outline and depth varied."""
+    from pwf_dask.retrieval import retrieve_projection
+
+    setup, sim, t, psi0, reference, lengths, exact = why_scene(grain, seed)
+    out = []
+
+    def row(case, phase, truth, res):
+        out.append(
+            {
+                "grain": grain,
+                "seed": seed,
+                "case": case,
+                "gain": cylinder_measures(phase, truth)["gain"],
+                "core_gain": core_gain(phase, truth),
+                "depth_rad": float(-truth.min()),
+                "max_gradient_rad_px": float(np.abs(np.diff(truth, axis=1)).max()),
+                "iterations": res.iterations,
+                "left_out_pct": 0.0,
+            }
+        )
+        print(f"edge {grain} seed {seed} {case}: gain {out[-1]['gain']:.3f} ({res.iterations} its)", flush=True)
+
+    for case, sigma, scale, alpha in EDGE_CASES:
+        psi = softened(psi0, sigma, scale)
+        sample, truth = sim.intensity(np.exp(psi), t).astype(np.float32), sim._bin(psi.imag)
+        opts = exact if alpha is None else dict(exact, alpha=alpha)
+        res = retrieve_projection(sample, reference, **setup.geometry(), **lengths, **opts)
+        row(case, np.asarray(res.phase), truth, res)
+        if case == EDGE_CASES[0][0]:
+            sharp = (sample, truth, np.asarray(res.residual))
+    sample, truth, residual = sharp
+    misfit = residual > EDGE_MISFIT_RMS * np.sqrt(np.mean(residual**2))
+    res = retrieve_projection(sample, reference, **setup.geometry(), **lengths, **exact, bad_pixels=misfit)
+    row(EDGE_LEFT_OUT, np.asarray(res.phase), truth, res)
+    out[-1]["left_out_pct"] = float(100 * misfit.mean())
     return out
 
 
@@ -193,25 +281,57 @@ def summary_lines(rows: list[dict], seeds, command: str = "python -m benchmarks.
     return lines
 
 
+def table_head(title: str, text: str, columns: str) -> list[str]:
+    """A results file's title (with the device), its paragraph and its table's header lines."""
+    return [f"# {title} ({device_name(np)})", "", text, "", *columns.split("\n")]
+
+
+def by_grain_and_case(rows: list[dict]):
+    """(grain, case, its rows) in the order the rows first name them: the tables' row groups."""
+    for grain in dict.fromkeys(r["grain"] for r in rows):
+        for case in dict.fromkeys(r["case"] for r in rows):
+            yield grain, case, [r for r in rows if r["grain"] == grain and r["case"] == case]
+
+
 def why_lines(rows: list[dict]) -> list[str]:
-    lines = [
-        f"# What the cylinder's draw is: one projection per diffuser draw ({device_name(np)})",
-        "",
+    lines = table_head(
+        "What the cylinder's draw is: one projection per diffuser draw",
         "`python -m benchmarks.cylinder_draws --why`: the demo's cylinder alone at 0 deg (phantom seed 0, "
         f"axis {AXIS_OFFSET_PX} px off centre), 48 x 128 px on the detector grid, noise-free, the true "
         f"lengths; only the diffuser is drawn anew. The true t runs to convergence or {WHY_MAX_ITER} iterations.",
-        "",
-        "| grain | case | gain: median | range | each draw |",
-        "|---|---|---:|---|---|",
-    ]
-    for grain in dict.fromkeys(r["grain"] for r in rows):
-        for case in dict.fromkeys(r["case"] for r in rows):
-            g = [r["gain"] for r in rows if r["grain"] == grain and r["case"] == case]
-            lines.append(
-                f"| {grain} | {case} | {np.median(g):.3f} | {min(g):.3f}-{max(g):.3f} | "
-                + " ".join(f"{x:.2f}" for x in g)
-                + " |"
-            )
+        "| grain | case | gain: median | range | each draw |\n|---|---|---:|---|---|",
+    )
+    for grain, case, rs in by_grain_and_case(rows):
+        g = [r["gain"] for r in rs]
+        lines.append(
+            f"| {grain} | {case} | {np.median(g):.3f} | {min(g):.3f}-{max(g):.3f} | "
+            + " ".join(f"{x:.2f}" for x in g)
+            + " |"
+        )
+    return lines
+
+
+def edge_lines(rows: list[dict]) -> list[str]:
+    lines = table_head(
+        "Where the cylinder's level goes: its outline, not its depth",
+        "`python -m benchmarks.cylinder_draws --edge`: the `--why` scene (the demo's cylinder alone at 0 deg, "
+        f"{ROWS} x {WIDTH_PX} px on the detector grid, noise-free, the true lengths and the true t, "
+        f"to convergence or {WHY_MAX_ITER} iterations), draws {', '.join(map(str, WHY_SEEDS))}; the same body "
+        "with its psi smoothed across the axis (sigma, simulator pixels) or scaled in depth. Gain: the "
+        "least-squares slope on the truth where it is below -0.3 rad; core: the level of the central half of "
+        f"its width. The last case leaves out of the data term the pixels the sharp cylinder's run misfits by "
+        f"more than {EDGE_MISFIT_RMS:g} x the rms (its edge columns).",
+        "| grain | case | depth rad | max gradient rad/px | gain: median | range | core: median | range | "
+        "iterations (median) | each draw's gain |\n|---|---|---:|---:|---:|---|---:|---|---:|---|",
+    )
+    for grain, case, rs in by_grain_and_case(rows):
+        g, c = [r["gain"] for r in rs], [r["core_gain"] for r in rs]
+        lines.append(
+            f"| {grain} | {case} | {np.median([r['depth_rad'] for r in rs]):.2f} | "
+            f"{np.median([r['max_gradient_rad_px'] for r in rs]):.2f} | {np.median(g):.3f} | "
+            f"{min(g):.2f}-{max(g):.2f} | {np.median(c):.3f} | {min(c):.2f}-{max(c):.2f} | "
+            f"{np.median([r['iterations'] for r in rs]):.0f} | " + " ".join(f"{x:.2f}" for x in g) + " |"
+        )
     return lines
 
 
@@ -223,7 +343,13 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--photons", type=float, default=PHOTONS, help="the scans' dose, ph/px")
     ap.add_argument("--rows", type=int, default=ROWS, help="the frame's height (the demo's is 48 x 128 px)")
     ap.add_argument("--why", action="store_true", help="take the draw apart on single projections instead")
+    ap.add_argument("--edge", action="store_true", help="the cylinder's outline and depth varied instead")
     args = ap.parse_args(argv)
+    if args.edge:
+        rows = [r for g in args.grains for s in WHY_SEEDS for r in edge_rows(g, s)]
+        out = write_rows_csv(args.out, "cylinder_draws_edge.csv", rows)
+        (out / "cylinder_draws_edge.md").write_text("\n".join(edge_lines(rows)) + "\n")
+        return rows
     if args.why:
         rows = [r for g in args.grains for s in WHY_SEEDS for r in why_rows(g, s)]
         out = write_rows_csv(args.out, "cylinder_draws_why.csv", rows)

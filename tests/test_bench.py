@@ -273,6 +273,30 @@ def test_cylinder_draws_reads_each_position_and_their_mean_against_the_truth():
     assert [dose(p) for p in (1e3, 1e4, 2.5e5)] == ["1e3", "1e4", "2.5e5"]  # the files' names
 
 
+def test_cylinder_edge_softens_the_outline_and_keeps_the_body_and_reads_its_core():
+    """The --edge benchmark's body and measure (benchmarks/cylinder_draws.py): sigma 0 and depth
+    1 give the phantom's psi itself; a softened outline keeps each row's integral of phase and
+    attenuation (the same body, blunter) while its steepest step falls several-fold; the core
+    reads a profile scaled by 0.8 above any background offset as 0.8."""
+    import numpy as np
+
+    from benchmarks.cylinder_draws import core_gain, softened
+
+    x = np.arange(256) - 127.5
+    profile = -8 * np.sqrt(np.clip(1 - (x / 60) ** 2, 0, None))
+    psi = np.tile(0.01 * profile + 1j * profile, (8, 1))
+    assert np.array_equal(softened(psi, 0.0), psi)
+    soft = softened(psi, 6.0)
+    np.testing.assert_allclose(soft.imag.sum(axis=1), psi.imag.sum(axis=1), rtol=1e-9)
+    np.testing.assert_allclose(soft.real.sum(axis=1), psi.real.sum(axis=1), rtol=1e-9)
+    steep = np.abs(np.diff(psi.imag, axis=1)).max()
+    assert np.abs(np.diff(soft.imag, axis=1)).max() < steep / 3
+    np.testing.assert_allclose(softened(psi, 0.0, 0.25), 0.25 * psi)
+    truth = psi.imag
+    assert core_gain(0.8 * truth + 0.3, truth) == pytest.approx(0.8)
+    assert core_gain(truth, truth) == pytest.approx(1.0)
+
+
 def test_a_benchmarks_header_names_the_command_that_made_it_without_its_output_folder():
     """The results' headers (benchmarks/reporting.command_line): the arguments as given, a
     grain with a space quoted so the line runs as printed, ``--out DIR`` left out."""
