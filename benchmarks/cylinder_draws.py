@@ -22,7 +22,7 @@ projections at 0 deg on the detector grid (oversample 1, so that the true diffus
 grid can hold), noise-free, with the true lengths, the phantom fixed and only the diffuser
 drawn anew: the default diffuser estimate, the true t, and the true t at a fiftieth of the
 default phase regularization, each to convergence or 3000 iterations. ``--edge``
-(``cylinder_draws_edge.md`` and ``.csv``, about 15 min) keeps the true t and varies the body
+(``cylinder_draws_edge.md`` and ``.csv``, about 6 min) keeps the true t and varies the body
 instead: its outline softened (psi smoothed across the axis), its depth scaled, a weaker phase
 regularization, and the pixels PWF misfits most (the edge's) left out of the data term.
 """
@@ -40,6 +40,7 @@ import numpy as np
 from benchmarks.cylinder_rows import FREE_RAD, cylinder_measures, true_diffuser
 from benchmarks.cylinder_rows import GRAINS as ALL_GRAINS
 from benchmarks.reporting import command_line, device_name, write_rows_csv
+from benchmarks.stability import calibrated_lengths
 
 #: the paper's P3000, a finer grain (1.2 um) and a coarser sandpaper (P2000, 10.3 um grains)
 GRAINS = {g: ALL_GRAINS[g] for g in ("P3000", "1.2 um", "P2000")}
@@ -80,8 +81,11 @@ def core_errors(ds) -> dict:
     return out
 
 
-def scan_rows(work: Path, grain: str, seed: int, photons: float = PHOTONS, frame_rows: int = ROWS) -> list[dict]:
-    """One demo scan of ``grain`` and ``seed`` through retrieve and tomo, a row per slice mode."""
+def scan_rows(
+    work: Path, grain: str, seed: int, photons: float = PHOTONS, frame_rows: int = ROWS, single_material: bool = False
+) -> list[dict]:
+    """One demo scan of ``grain`` and ``seed`` through retrieve and tomo, a row per slice mode;
+    ``single_material``: the retrieval's single-material prior, the cylinder's cellulose."""
     import xarray as xr
 
     from pwf_dask.pipeline.workflow import retrieve_scan, tomo_scan
@@ -100,7 +104,7 @@ def scan_rows(work: Path, grain: str, seed: int, photons: float = PHOTONS, frame
         **GRAINS[grain],
     )
     t0 = time.perf_counter()
-    retrieve_scan(scan, recon)
+    retrieve_scan(scan, recon, **({"single_material": True, "sample_material": "cellulose"} if single_material else {}))
     out = []
     for mode in SLICE_BACKGROUNDS:
         tomo_scan(recon, slice_background=mode)
@@ -112,6 +116,7 @@ def scan_rows(work: Path, grain: str, seed: int, photons: float = PHOTONS, frame
                 "photons": photons,
                 "rows": frame_rows,
                 "slice_background": mode,
+                "single_material": single_material,
                 **core_errors(ds[["delta", "beta"]].load().assign_attrs(ds.attrs)),
                 "converged": float(ds.converged.values.mean()),
                 "wall_s": time.perf_counter() - t0,
@@ -167,6 +172,12 @@ EDGE_CASES = (
 )
 EDGE_MISFIT_RMS = 3.0
 EDGE_LEFT_OUT = f"sharp, pixels misfit > {EDGE_MISFIT_RMS:g} rms left out"
+#: and the sharp cylinder at the demo's dose with every default, without and with the
+#: single-material prior of its one material
+EDGE_NOISY_CASES = {
+    "sharp, 1e4 ph/px, every default": {},
+    "sharp, 1e4 ph/px, single-material prior (cellulose)": {"single_material": True, "sample_material": "cellulose"},
+}
 
 
 def softened(psi: np.ndarray, sigma_px: float, depth_scale: float = 1.0) -> np.ndarray:
@@ -226,6 +237,13 @@ def edge_rows(grain: str, seed: int) -> list[dict]:
     res = retrieve_projection(sample, reference, **setup.geometry(), **lengths, **exact, bad_pixels=misfit)
     row(EDGE_LEFT_OUT, np.asarray(res.phase), truth, res)
     out[-1]["left_out_pct"] = float(100 * misfit.mean())
+    # as a user's run sees the sharp cylinder: counts, its own lengths and diffuser estimate
+    rng = np.random.default_rng(100 + seed)
+    noisy = [(rng.poisson(a * PHOTONS) / PHOTONS).astype(np.float32) for a in (reference, sample)]
+    calibrated = calibrated_lengths(noisy[0], dataclasses.replace(setup, photons=PHOTONS))
+    for case, opts in EDGE_NOISY_CASES.items():
+        res = retrieve_projection(noisy[1], noisy[0], **setup.geometry(), **calibrated, **opts)
+        row(case, np.asarray(res.phase), truth, res)
     return out
 
 
@@ -241,6 +259,9 @@ def spread(values) -> str:
     return f"{np.median(v):+.1f} | {np.sqrt(np.mean(v**2)):.1f} | {v.min():+.1f} to {v.max():+.1f}"
 
 
+PRIOR_TEXT = "the single-material prior (cellulose), every default otherwise"
+
+
 def summary_lines(rows: list[dict], seeds, command: str = "python -m benchmarks.cylinder_draws") -> list[str]:
     quantities = [q for q in QUANTITIES if f"{q}_err_p0" in rows[0]]  # files before the bead have none
     lines = [
@@ -248,7 +269,8 @@ def summary_lines(rows: list[dict], seeds, command: str = "python -m benchmarks.
         "",
         f"`{command}`: the demo scan ({rows[0].get('rows', ROWS)} x {WIDTH_PX} px, {ANGLES} angles, "
         f"axis {AXIS_OFFSET_PX} px off centre, "
-        f"raw counts, 2 positions, {dose(rows[0]['photons'])} ph/px, every default), "
+        f"raw counts, 2 positions, {dose(rows[0]['photons'])} ph/px, "
+        f"{PRIOR_TEXT if rows[0].get('single_material') in (True, 'True') else 'every default'}), "
         f"seeds {', '.join(map(str, seeds))}; the cylinder's "
         "bead-free core against cellulose, the largest bead's (within half its radius) against glass. "
         "Single positions: both positions of every seed; mean: the two "
@@ -320,7 +342,9 @@ def edge_lines(rows: list[dict]) -> list[str]:
         "with its psi smoothed across the axis (sigma, simulator pixels) or scaled in depth. Gain: the "
         "least-squares slope on the truth where it is below -0.3 rad; core: the level of the central half of "
         f"its width. The last case leaves out of the data term the pixels the sharp cylinder's run misfits by "
-        f"more than {EDGE_MISFIT_RMS:g} x the rms (its edge columns).",
+        f"more than {EDGE_MISFIT_RMS:g} x the rms (its edge columns). The two {dose(PHOTONS)} ph/px cases take "
+        "Poisson counts of the same images and a user's run: lengths calibrated, the diffuser estimated, the "
+        "default stop, without and with the single-material prior.",
         "| grain | case | depth rad | max gradient rad/px | gain: median | range | core: median | range | "
         "iterations (median) | each draw's gain |\n|---|---|---:|---:|---:|---|---:|---|---:|---|",
     )
@@ -342,6 +366,9 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--grains", nargs="+", default=list(GRAINS), choices=list(GRAINS))
     ap.add_argument("--photons", type=float, default=PHOTONS, help="the scans' dose, ph/px")
     ap.add_argument("--rows", type=int, default=ROWS, help="the frame's height (the demo's is 48 x 128 px)")
+    ap.add_argument(
+        "--single-material", action="store_true", help="the scans retrieved with the single-material prior (cellulose)"
+    )
     ap.add_argument("--why", action="store_true", help="take the draw apart on single projections instead")
     ap.add_argument("--edge", action="store_true", help="the cylinder's outline and depth varied instead")
     args = ap.parse_args(argv)
@@ -359,7 +386,8 @@ def main(argv=None) -> list[dict]:
     with tempfile.TemporaryDirectory(prefix="pwf-cylinder-draws-") as tmp:
         for grain in args.grains:
             for seed in args.seeds:
-                for r in scan_rows(Path(tmp) / grain.replace(" ", ""), grain, seed, args.photons, args.rows):
+                work = Path(tmp) / grain.replace(" ", "")
+                for r in scan_rows(work, grain, seed, args.photons, args.rows, args.single_material):
                     rows.append(r)
                     print(
                         f"{grain} seed {seed} {r['slice_background']}: delta {100 * r['delta_err_p0']:+.1f} / "
@@ -368,6 +396,7 @@ def main(argv=None) -> list[dict]:
                     )
     name = "cylinder_draws" + ("" if args.photons == PHOTONS else f"_{dose(args.photons)}")
     name += "" if args.rows == ROWS else f"_{args.rows}rows"
+    name += "_single_material" if args.single_material else ""
     out = write_rows_csv(args.out, f"{name}.csv", rows)
     command = command_line("benchmarks.cylinder_draws", argv)
     (out / f"{name}.md").write_text("\n".join(summary_lines(rows, args.seeds, command)) + "\n")

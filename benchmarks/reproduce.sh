@@ -66,6 +66,7 @@ case "${1:-all}" in
   cylinder-draws) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --out "$OUT" ;;
   cylinder-draws-why) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --why --out "$OUT" ;;
   cylinder-draws-edge) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --edge --out "$OUT" ;;
+  cylinder-draws-single-material) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --single-material --grains P3000 --out "$OUT" ;;
   cylinder-draws-1e3) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --photons 1e3 --grains P3000 "1.2 um" --out "$OUT" ;;
   cylinder-draws-96rows) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --rows 96 --grains P3000 --out "$OUT" ;;
   coherence-sensitivity) "$(dirname "$PWF")/python" -m benchmarks.coherence_sensitivity --out "$OUT" ;;
@@ -83,6 +84,6 @@ case "${1:-all}" in
   fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --part all --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-edge cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|cylinder-draws|cylinder-draws-why|cylinder-draws-edge|cylinder-draws-1e3|cylinder-draws-96rows|coherence-sensitivity|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-edge cylinder-draws-single-material cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|cylinder-draws|cylinder-draws-why|cylinder-draws-edge|cylinder-draws-single-material|cylinder-draws-1e3|cylinder-draws-96rows|coherence-sensitivity|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
 esac
