@@ -75,22 +75,31 @@ def core_errors(ds) -> dict:
 
     dc, bc = delta_beta("cellulose", ds.attrs["energy_eV"])
     dg, bg = delta_beta("soda-lime glass", ds.attrs["energy_eV"])
-    bead = largest_bead_core(phantom_from_json(ds.attrs["simulation_phantom"]), ds)
+    phantom = phantom_from_json(ds.attrs["simulation_phantom"])
+    bead = largest_bead_core(phantom, ds) if phantom.spheres else None
     mean = ds.mean("position", keepdims=True, keep_attrs=True)
     out = {}
     for name, d_s, p in [*((f"p{p}", ds, p) for p in range(ds.sizes["position"])), ("mean", mean, 0)]:
         d, b = cylinder_values(d_s, p)
         out[f"delta_err_{name}"], out[f"beta_err_{name}"] = d / dc - 1, b / bc - 1
-        out[f"bead_delta_err_{name}"] = float(d_s.delta[p].values[bead].mean() / dg - 1)
-        out[f"bead_beta_err_{name}"] = float(d_s.beta[p].values[bead].mean() / bg - 1)
+        if bead is not None:  # a scan without beads (``--no-beads``) has the cylinder alone
+            out[f"bead_delta_err_{name}"] = float(d_s.delta[p].values[bead].mean() / dg - 1)
+            out[f"bead_beta_err_{name}"] = float(d_s.beta[p].values[bead].mean() / bg - 1)
     return out
 
 
 def scan_rows(
-    work: Path, grain: str, seed: int, photons: float = PHOTONS, frame_rows: int = ROWS, single_material: bool = False
+    work: Path,
+    grain: str,
+    seed: int,
+    photons: float = PHOTONS,
+    frame_rows: int = ROWS,
+    single_material: bool = False,
+    beads: bool = True,
 ) -> list[dict]:
     """One demo scan of ``grain`` and ``seed`` through retrieve and tomo, a row per slice mode;
-    ``single_material``: the retrieval's single-material prior, the cylinder's cellulose."""
+    ``single_material``: the retrieval's single-material prior, the cylinder's cellulose;
+    ``beads=False``: the cylinder alone (a sample of one material)."""
     import xarray as xr
 
     from pwf_dask.pipeline.workflow import retrieve_scan, tomo_scan
@@ -105,6 +114,7 @@ def scan_rows(
         rotation_axis_offset_px=AXIS_OFFSET_PX,
         photons=photons,
         shape=(frame_rows, WIDTH_PX),
+        beads=beads,
         progress=False,
         **GRAINS[grain],
     )
@@ -122,6 +132,7 @@ def scan_rows(
                 "rows": frame_rows,
                 "slice_background": mode,
                 "single_material": single_material,
+                "beads": beads,
                 **core_errors(ds[["delta", "beta"]].load().assign_attrs(ds.attrs)),
                 "converged": float(ds.converged.values.mean()),
                 "wall_s": time.perf_counter() - t0,
@@ -265,6 +276,7 @@ def spread(values) -> str:
 
 
 PRIOR_TEXT = "the single-material prior (cellulose), every default otherwise"
+BEAD_TEXT = ", the largest bead's (within half its radius) against glass"
 
 
 def summary_lines(rows: list[dict], seeds, command: str = "python -m benchmarks.cylinder_draws") -> list[str]:
@@ -272,12 +284,13 @@ def summary_lines(rows: list[dict], seeds, command: str = "python -m benchmarks.
     lines = [
         f"# The demo's wide weak cylinder over diffuser draws ({device_name(np)})",
         "",
-        f"`{command}`: the demo scan ({rows[0].get('rows', ROWS)} x {WIDTH_PX} px, {ANGLES} angles, "
+        f"`{command}`: the demo scan{'' if rows[0].get('beads', True) in (True, 'True') else ' without its beads'} "
+        f"({rows[0].get('rows', ROWS)} x {WIDTH_PX} px, {ANGLES} angles, "
         f"axis {AXIS_OFFSET_PX} px off centre, "
         f"raw counts, 2 positions, {dose(rows[0]['photons'])} ph/px, "
         f"{PRIOR_TEXT if rows[0].get('single_material') in (True, 'True') else 'every default'}), "
         f"seeds {', '.join(map(str, seeds))}; the cylinder's "
-        "bead-free core against cellulose, the largest bead's (within half its radius) against glass. "
+        f"bead-free core against cellulose{BEAD_TEXT if 'bead_delta' in quantities else ''}. "
         "Single positions: both positions of every seed; mean: the two "
         "positions' tomograms averaged, one value per seed; rms about zero.",
         "",
@@ -374,6 +387,7 @@ def main(argv=None) -> list[dict]:
     ap.add_argument(
         "--single-material", action="store_true", help="the scans retrieved with the single-material prior (cellulose)"
     )
+    ap.add_argument("--no-beads", action="store_true", help="the demo's cylinder alone, without its glass beads")
     ap.add_argument("--why", action="store_true", help="take the draw apart on single projections instead")
     ap.add_argument("--edge", action="store_true", help="the cylinder's outline and depth varied instead")
     args = ap.parse_args(argv)
@@ -392,7 +406,7 @@ def main(argv=None) -> list[dict]:
         for grain in args.grains:
             for seed in args.seeds:
                 work = Path(tmp) / grain.replace(" ", "")
-                for r in scan_rows(work, grain, seed, args.photons, args.rows, args.single_material):
+                for r in scan_rows(work, grain, seed, args.photons, args.rows, args.single_material, not args.no_beads):
                     rows.append(r)
                     print(
                         f"{grain} seed {seed} {r['slice_background']}: delta {100 * r['delta_err_p0']:+.1f} / "
@@ -402,6 +416,7 @@ def main(argv=None) -> list[dict]:
     name = "cylinder_draws" + ("" if args.photons == PHOTONS else f"_{dose(args.photons)}")
     name += "" if args.rows == ROWS else f"_{args.rows}rows"
     name += "_single_material" if args.single_material else ""
+    name += "_no_beads" if args.no_beads else ""
     out = write_rows_csv(args.out, f"{name}.csv", rows)
     command = command_line("benchmarks.cylinder_draws", argv)
     (out / f"{name}.md").write_text("\n".join(summary_lines(rows, args.seeds, command)) + "\n")

@@ -82,6 +82,7 @@ def _simulate(args) -> int:
         diffuser_grit=args.grit,
         diffuser_radius_median_m=None if args.grain_radius_um is None else args.grain_radius_um * 1e-6,
         diffuser_grain_shape=args.grain_shape,
+        beads=not args.no_beads,
     )
     print(f"wrote scan {path}")
     return 0
@@ -537,6 +538,11 @@ def _simulate_command(command) -> None:
         metavar="F",
         help="the sample cylinder's diameter over the frame width (default 0.576); above 1 the sample "
         "is wider than the field of view (an interior scan)",
+    )
+    s.add_argument(
+        "--no-beads",
+        action="store_true",
+        help="leave the glass beads out: the cellulose cylinder alone, a sample of one material",
     )
     s.add_argument(
         "--dark-field-px",

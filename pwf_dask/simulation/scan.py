@@ -56,6 +56,7 @@ def simulate_scan(
     diffuser_grit: str = diffusers.DEFAULT_GRIT,
     diffuser_radius_median_m: float | None = None,
     diffuser_grain_shape: str = "spheres",
+    beads: bool = True,
     progress: bool = True,
 ) -> str:
     """Simulate a whole scan into a Zarr store (docs/scan-format.md §1) and return its path.
@@ -76,8 +77,9 @@ def simulate_scan(
     blurs the speckle behind its thickest part by a Gaussian of that sigma (detector pixels;
     :func:`dark_field_blur`). The diffuser is four layers of ``diffuser_grit`` sandpaper (the
     paper's P3000 by default), or grains of ``diffuser_radius_median_m``, of
-    ``diffuser_grain_shape`` (:mod:`pwf_dask.physics.diffusers`). The phantom, the diffuser and the
-    truth are recorded in the attributes.
+    ``diffuser_grain_shape`` (:mod:`pwf_dask.physics.diffusers`). ``beads=False`` leaves the
+    glass beads out: the cellulose cylinder alone, a sample of one material. The phantom, the
+    diffuser and the truth are recorded in the attributes.
     """
     from pwf_dask.stores import scan_io
 
@@ -102,6 +104,8 @@ def simulate_scan(
         setup = replace(setup, sample_diffuser_distance_m=0.0, diffuser_upstream_m=diffuser_upstream_m)
     setup.rotation_axis_offset_m = rotation_axis_offset_px * setup.pixel_size_m
     phantom = scan_phantom(shape, setup.pixel_size_m, seed, cylinder_width_fraction, cfg.get("bead_radius_m"))
+    if not beads:
+        phantom = replace(phantom, spheres=())
     angles_deg = np.linspace(0.0, 180.0, n_ang)
     attrs = {
         "energy_eV": setup.energy_eV,
