@@ -17,7 +17,9 @@ Reported: relative phase error inside the sample and phase gain (background zero
 sample-free pixels), iterations, the calibration's refusal where it refuses; and the scene's
 own numbers that decide it: the 99th percentile of the speckle displacement the sample causes
 (lambda L2 |grad phi| / 2 pi p, pixels), the speckle grain (FWHM of the reference's
-autocorrelation, pixels) and the reference's visibility (rms / mean).
+autocorrelation, pixels) and the reference's visibility (rms / mean); and for PWF what its own
+check of the data measured (``speckle_shift_over_grain`` of the retrieved phase,
+``speckle_visibility_measured``, ``flagged``: benchmarks/sensitivity_check.py).
 
     python -m benchmarks.random_scenes [--scenes 80] [--discrepancy] [--out benchmarks/results]
 
@@ -132,6 +134,10 @@ def scene_row(i: int, methods: tuple[str, ...] = METHODS) -> list[dict]:
                 converged=bool(res.converged),
                 coherence_x_um_used=res.coherence_length_x_m * 1e6 if res.coherence_length_x_m else np.nan,
                 coherence_y_um_used=res.coherence_length_y_m * 1e6 if res.coherence_length_y_m else np.nan,
+                # PWF's own check of what the data carry (NaN for the trackers: not measured)
+                speckle_shift_over_grain=res.parameters.get("speckle_shift_over_grain", np.nan),
+                speckle_visibility_measured=res.parameters.get("speckle_visibility", np.nan),
+                flagged=bool(res.parameters.get("sensitivity_warning")),
             )
         row["wall_s"] = time.perf_counter() - t0
         row["holds"] = bool(row["phase_error"] < PHASE_ERROR_THRESHOLD)
@@ -269,18 +275,28 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--discrepancy", action="store_true", help="also PWF with alpha='discrepancy'")
     args = ap.parse_args(argv)
     methods = METHODS + ((DISCREPANCY,) if args.discrepancy else ())
+    return run_and_report(args.scenes, methods, args.out, "random_scenes", write_report, plot)
+
+
+def run_and_report(scenes: int, methods: tuple[str, ...], out_dir, name: str, report, figure) -> list[dict]:
+    """Scenes 0 to ``scenes`` - 1 by every method, one progress line a scene, then
+    ``name``.csv, ``report(rows, out, device)`` and ``figure(rows, name.png)``."""
     rows = []
-    for i in range(args.scenes):
+    for i in range(scenes):
         scene_rows = scene_row(i, methods)
         rows += scene_rows
         print(
-            f"scene {i}: " + ", ".join(f"{r['method']} {r['phase_error']:.3f}" for r in scene_rows),
+            f"scene {i}: " + ", ".join(f"{r['method']} {r['phase_error']:.3f} {_flag(r)}" for r in scene_rows),
             flush=True,
         )
-    out = write_rows_csv(args.out, "random_scenes.csv", rows)
-    write_report(rows, out, device_name(np))
-    plot(rows, Path(out, "random_scenes.png"))
+    out = write_rows_csv(out_dir, f"{name}.csv", rows)
+    report(rows, out, device_name(np))
+    figure(rows, Path(out, f"{name}.png"))
     return rows
+
+
+def _flag(row: dict) -> str:
+    return "(flagged)" if row.get("flagged") else ""
 
 
 if __name__ == "__main__":

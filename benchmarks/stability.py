@@ -51,6 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.reporting import read_rows_csv
+from pwf_dask import calibration
 from pwf_dask.physics import optics
 from pwf_dask.pwf.solver import PAPER_ALPHA
 from pwf_dask.retrieval import retrieve_projection
@@ -113,18 +114,9 @@ def single_bead(phantom: Phantom, radius_m: float) -> Sphere:
 
 def speckle_grain_px(reference: np.ndarray) -> float:
     """Mean full width at half maximum (pixels) of the reference speckle's autocorrelation along
-    x and y: the speckle grain size the displacement is compared with."""
-    r = reference / reference.mean() - 1.0
-    ac = np.fft.irfft2(np.abs(np.fft.rfft2(r)) ** 2, s=r.shape)
-    ac = ac / ac[0, 0]
-    widths = []
-    for prof in (ac[0, : r.shape[1] // 2], ac[: r.shape[0] // 2, 0]):
-        below = np.nonzero(prof < 0.5)[0]
-        i = int(below[0]) if below.size else len(prof) - 1
-        # linear interpolation of the half-maximum crossing between i - 1 and i
-        x = i - 1 + (prof[i - 1] - 0.5) / max(prof[i - 1] - prof[i], 1e-12)
-        widths.append(2.0 * x)
-    return float(np.mean(widths))
+    x and y, photon noise included: the speckle grain size the displacement is compared with
+    (:func:`pwf_dask.calibration.speckle_grain_px`, the measure of the committed tables)."""
+    return calibration.speckle_grain_px(reference, subtract_noise=False)
 
 
 def displacement_px(phase: np.ndarray, wavelength: float, l2_m: float, pixel_size_m: float) -> float:

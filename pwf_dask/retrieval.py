@@ -15,6 +15,7 @@ import numpy as np
 
 from pwf_dask import calibration
 from pwf_dask.backend import FFT, get_array_module, to_numpy
+from pwf_dask.calibration import sensitivity
 from pwf_dask.options import DEFAULTS, RetrievalOptions
 from pwf_dask.physics import background as bg
 from pwf_dask.physics import optics
@@ -708,7 +709,7 @@ def retrieve_projection(
             phase, attenuation, background_mask, unseen if moved else None
         )
     residual_pct = to_numpy(xp.abs(solved.sol.evaluation.r[solved.model.frame])) * 100.0
-    return RetrievalResult(
+    res = RetrievalResult(
         phase=xp.asarray(phase.astype(model.rdtype)),
         attenuation=xp.asarray(attenuation.astype(model.rdtype)),
         iterations=solved.iterations,
@@ -738,6 +739,25 @@ def retrieve_projection(
         | {"background_planes": planes},
         background=mask,
     )
+    return _with_sensitivity(res, ref, energy_eV, pixel_size_m, diffuser_detector_distance_m)
+
+
+def _with_sensitivity(res: RetrievalResult, reference, energy_eV, pixel_size_m, diffuser_detector_distance_m):
+    """``res`` with what the speckle could carry in its parameters
+    (:func:`pwf_dask.calibration.sensitivity.assess`: the speckle's visibility and grain, the
+    phase's speckle shift, and a warning where the data carry little of the phase). PWF's
+    only: its limits were chosen on PWF's phase, and a tracker's noisier phase reads steeper."""
+    xp = get_array_module(res.phase)
+    found = sensitivity.assess(
+        res.phase,
+        reference,
+        wavelength_m=optics.wavelength_m(energy_eV),
+        diffuser_detector_distance_m=diffuser_detector_distance_m,
+        pixel_size_m=pixel_size_m,
+        background=None if res.background is None else xp.asarray(res.background),
+    )
+    res.parameters.update(found.parameters())
+    return res
 
 
 @dataclass

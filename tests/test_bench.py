@@ -139,6 +139,33 @@ def test_random_scenes_draw_every_parameter_inside_its_stated_range():
     assert {s.diffuser_grain_shape for s in setups} == {"spheres", "faceted", "mixed"}
 
 
+def test_sensitivity_check_counts_each_set_apart_and_leaves_refusals_out():
+    """The warning's confusion table (benchmarks/sensitivity_check.py) counts per set of
+    scenes, flagged holds apart from flagged failures, and a refused calibration in neither."""
+    from benchmarks.sensitivity_check import summary_rows
+
+    def row(scene, error, flagged, shift=0.1, refused=""):
+        return {
+            "scene": scene,
+            "refused": refused,
+            "phase_error": error,
+            "phase_gain": 1 - error,
+            "holds": error < 0.25,
+            "flagged": flagged,
+            "speckle_shift_over_grain": shift,
+        }
+
+    rows = [row(0, 0.1, False, 0.05), row(1, 0.9, True), row(2, 0.5, False), row(3, 0.9, False, refused="no")]
+    rows += [row(130, 0.2, True, 0.02), row(131, 0.1, False, 0.3)]
+    first, held_out = summary_rows(rows)
+    assert (first["retrieved"], first["refused"], first["holds"], first["fails"]) == (3, 1, 1, 2)
+    assert (first["flagged_holds"], first["flagged_fails"], first["nearest_hold"]) == (0, 1, 0.05)
+    assert (first["gain_flagged"], first["gain_unflagged_fails"]) == ("0.10", "0.50")
+    assert (
+        held_out["set"].endswith("(held out)") and held_out["flagged_holds"] == 1 and held_out["nearest_hold"] == 0.02
+    )
+
+
 def test_coarse_start_bins_and_interpolates_on_the_detectors_pixel_centres():
     """The coarse-to-fine start (benchmarks/coarse_start.py) is only a fair trial if its binned
     frame and the interpolation back keep the pixel centres: a plane binned 2 x 2 and

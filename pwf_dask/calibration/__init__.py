@@ -4,7 +4,9 @@
   Eq. (IOTF), and the photon noise of a frame;
 * :mod:`~pwf_dask.calibration.diffuser` - the diffuser's transmission function t_r;
 * :mod:`~pwf_dask.calibration.drift` - the diffuser's drift between reference and sample
-  frames (not in the paper).
+  frames (not in the paper);
+* :mod:`~pwf_dask.calibration.sensitivity` - what the speckle can carry: its visibility and
+  grain, and a retrieved phase's speckle shift against them (not in the paper).
 """
 
 from pwf_dask.calibration.coherence import (
@@ -30,6 +32,13 @@ from pwf_dask.calibration.diffuser import (
     single_material_diffuser,
 )
 from pwf_dask.calibration.drift import shift_transmission, speckle_drift_px, unseen_by_reference
+from pwf_dask.calibration.sensitivity import (
+    Sensitivity,
+    SensitivityLimits,
+    speckle_grain_px,
+    speckle_shift_px,
+    speckle_visibility,
+)
 
 __all__ = [
     "AUTO_MIN_ATTENUATION_PER_M",
@@ -38,6 +47,8 @@ __all__ = [
     "DIFFUSER_MODELS",
     "CoherenceFit",
     "DiffuserEstimate",
+    "Sensitivity",
+    "SensitivityLimits",
     "choose_diffuser_model",
     "coherence_lengths",
     "ctf_phase_delay",
@@ -49,8 +60,11 @@ __all__ = [
     "shift_transmission",
     "single_material_diffuser",
     "speckle_drift_px",
+    "speckle_grain_px",
+    "speckle_shift_px",
     "speckle_spectrum",
     "spectrum_tile",
+    "speckle_visibility",
     "unseen_by_reference",
     "white_noise_floor",
 ]

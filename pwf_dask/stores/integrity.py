@@ -308,6 +308,8 @@ _OPTIONAL = (
     "diffuser",  # a missing or damaged fit is made again by the next run
     "diffuser_drift_y_px",
     "diffuser_drift_x_px",
+    "speckle_shift_over_grain",
+    "speckle_visibility",
     "background_plane_phase",
     "background_plane_attenuation",
 )

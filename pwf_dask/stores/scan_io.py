@@ -338,6 +338,8 @@ VARIABLE_ATTRS: dict[str, tuple[str, str]] = {
     "preview_residual": ("percent", "data residual |y - f| of the first angle's projection (preview)"),
     "diffuser_drift_y_px": ("pixel", "measured speckle drift against the reference, rows"),
     "diffuser_drift_x_px": ("pixel", "measured speckle drift against the reference, columns"),
+    "speckle_shift_over_grain": ("1", "99th percentile of the phase's speckle shift over the speckle grain (PWF)"),
+    "speckle_visibility": ("1", "reference speckle's rms over its mean, photon noise removed (PWF)"),
     "background_plane_phase": ("rad", "plane subtracted from the phase (constant, row and column slopes per frame)"),
     "background_plane_attenuation": ("1", "plane subtracted from the attenuation (constant, row and column slopes)"),
     "delta": ("1", "refractive index decrement delta"),
@@ -486,6 +488,9 @@ def _build_reconstruction(path: str, info: ScanInfo, params: dict) -> None:
     create_variable(g, "preview_residual", (npos, ny, nx), (1, rb, nx), ("position", "y", "x"), "float32", np.nan)
     # the speckle's measured drift (the multi-image trackers: the mean over the K positions)
     for name in ("diffuser_drift_y_px", "diffuser_drift_x_px"):
+        create_variable(g, name, (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
+    # what the speckle could carry (calibration.sensitivity): below its limits the phase is unreliable
+    for name in ("speckle_shift_over_grain", "speckle_visibility"):
         create_variable(g, name, (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
     # what the background fit took from PWF's psi: a warm-started chain adds it back to start
     # from the solver's own psi (a tilt left out moves the whole speckle; workflow._start_psi)

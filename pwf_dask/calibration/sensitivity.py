@@ -1,0 +1,188 @@
+"""What the speckle can carry: the reference's visibility and speckle grain, and how far a
+retrieved phase moves that speckle against its grain (not in the paper).
+
+A sample is seen through the speckle it moves: a phase gradient grad(phi) tilts the wave by
+lambda grad(phi) / 2 pi, which shifts the speckle on the detector by
+
+    d = lambda L2 |grad phi| / (2 pi p)   pixels (p the pixel size),
+
+the quantity every speckle-tracking method measures and the one the 80 random geometries of
+docs/validation.md sort by. Where d is a small fraction of the speckle grain g (the width of
+the reference's autocorrelation), or the speckle itself is faint, the measured frame hardly
+differs from the reference and no single-image method gets the phase back: PWF returns too
+little of it (or, rarely, too much). :func:`assess` measures d / g on the retrieved phase and the visibility on the
+reference, and words a warning where either lies below :class:`SensitivityLimits`
+(benchmarks/sensitivity_check.py: flagged scenes fail, unflagged ones mostly hold).
+
+Both reference measures come from one power spectrum with its white photon-noise floor taken
+out (:func:`pwf_dask.calibration.white_noise_floor`'s corners): photon noise would otherwise
+add to the visibility and narrow the autocorrelation. Every function runs on its input's
+array module (NumPy or CuPy); the numbers come back as Python floats.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pwf_dask.backend import get_array_module
+
+#: the fewest sample pixels (outside the background mask) the shift's percentile is taken over;
+#: with fewer the whole frame is used
+MIN_SAMPLE_PIXELS = 100
+#: which percentile of the sample's speckle shift stands for the sample (its steepest edges
+#: without the few pixels noise or a defect makes steeper)
+SHIFT_PERCENTILE = 99.0
+
+
+@dataclass(frozen=True)
+class SensitivityLimits:
+    """Below these the data carry little of the phase (benchmarks/results/sensitivity_check.md:
+    chosen on random scenes 0-79 with no holding scene flagged, checked on 80-119).
+
+    ``min_shift_over_grain``: the 99th percentile of the retrieved phase's speckle shift over
+    the speckle grain. ``min_visibility``: the reference's rms over its mean, photon noise
+    removed.
+    """
+
+    min_shift_over_grain: float = 0.03
+    min_visibility: float = 0.05
+
+
+@dataclass(frozen=True)
+class Sensitivity:
+    """What :func:`assess` measured; ``warning`` is None where the data carry the phase."""
+
+    visibility: float
+    speckle_grain_px: float
+    speckle_shift_px: float
+    shift_over_grain: float
+    warning: str | None
+
+    def parameters(self) -> dict:
+        """The record ``RetrievalResult.parameters`` keeps."""
+        return {
+            "speckle_visibility": self.visibility,
+            "speckle_grain_px": self.speckle_grain_px,
+            "speckle_shift_px": self.speckle_shift_px,
+            "speckle_shift_over_grain": self.shift_over_grain,
+            "sensitivity_warning": self.warning,
+        }
+
+
+def _noise_free_spectrum(reference):
+    """Power spectrum (rfft2 layout) of the reference's relative contrast with the white
+    photon-noise floor subtracted and its mean removed: an unbiased estimate of the speckle's
+    own spectrum, whose sums (variance, autocorrelation) carry no photon noise."""
+    xp = get_array_module(reference)
+    r = xp.asarray(reference, dtype=xp.float64)
+    r = r / r.mean() - 1.0
+    ny, nx = r.shape
+    spec = xp.abs(xp.fft.rfft2(r)) ** 2 / (ny * nx)
+    v, u = xp.fft.fftfreq(ny)[:, None], xp.fft.rfftfreq(nx)[None, :]
+    # the IOTF leaves no speckle beyond the Nyquist circle: there the periodogram is white
+    # noise, exponentially distributed, so its median is ln 2 of the floor
+    corners = xp.broadcast_to(u * u + v * v > 0.3, spec.shape)
+    noise = float(xp.median(spec[corners])) / np.log(2.0) if bool(corners.any()) else 0.0
+    # not clipped at zero: where there is no speckle, half the bins lie below the floor, and
+    # clipping them would leave 37 % of the noise in every sum over the spectrum
+    spec = spec - noise
+    spec[0, 0] = 0.0
+    return spec
+
+
+def _real_sum(spec, nx: int) -> float:
+    """Sum over the full 2-D spectrum of an rfft2-layout half (the columns that stand for two)."""
+    xp = get_array_module(spec)
+    weight = xp.full(spec.shape[1], 2.0)
+    weight[0] = 1.0
+    if nx % 2 == 0:
+        weight[-1] = 1.0
+    return float((spec * weight).sum())
+
+
+def speckle_visibility(reference) -> float:
+    """The reference's rms contrast over its mean, photon noise removed (sqrt of the
+    noise-free spectrum's power, Parseval)."""
+    nx = reference.shape[-1]
+    return float(np.sqrt(max(_real_sum(_noise_free_spectrum(reference), nx) / reference.size, 0.0)))
+
+
+def autocorrelation_fwhm_px(autocorrelation) -> float:
+    """Mean full width at half maximum (pixels) of an autocorrelation (zero lag at [0, 0])
+    along x and y, the half-maximum crossing interpolated linearly."""
+    xp = get_array_module(autocorrelation)
+    ac = autocorrelation / autocorrelation[0, 0]
+    widths = []
+    ny, nx = ac.shape
+    for prof in (ac[0, : nx // 2], ac[: ny // 2, 0]):
+        prof = np.asarray(prof.get() if xp is not np else prof)
+        below = np.nonzero(prof < 0.5)[0]
+        i = int(below[0]) if below.size else len(prof) - 1
+        x = i - 1 + (prof[i - 1] - 0.5) / max(prof[i - 1] - prof[i], 1e-12)
+        widths.append(2.0 * x)
+    return float(np.mean(widths))
+
+
+def speckle_grain_px(reference, *, subtract_noise: bool = True) -> float:
+    """Speckle grain size (pixels): the mean FWHM of the reference's autocorrelation along x
+    and y. ``subtract_noise=False`` keeps the photon noise's spike at zero lag (the measure of
+    the committed random-scene and stability tables, benchmarks/stability.py)."""
+    xp = get_array_module(reference)
+    if subtract_noise:
+        spec = _noise_free_spectrum(reference)
+    else:
+        r = xp.asarray(reference, dtype=xp.float64)
+        spec = xp.abs(xp.fft.rfft2(r / r.mean() - 1.0)) ** 2
+    if not float(spec.max()) > 0:
+        return float("nan")
+    return autocorrelation_fwhm_px(xp.fft.irfft2(spec, s=reference.shape))
+
+
+def speckle_shift_px(phase, wavelength_m: float, distance_m: float, pixel_size_m: float, sample=None) -> float:
+    """The sample's speckle shift lambda L |grad phi| / (2 pi p) in pixels at its
+    :data:`SHIFT_PERCENTILE`, over the ``sample`` pixels (True = sample) where there are at
+    least :data:`MIN_SAMPLE_PIXELS` of them, else over the frame. ``distance_m`` is the
+    distance from the modulating plane to the detector (L2 of the paper)."""
+    xp = get_array_module(phase)
+    gy, gx = xp.gradient(xp.asarray(phase, dtype=xp.float64))
+    slope = xp.hypot(gx, gy)
+    if sample is not None and int(sample.sum()) >= MIN_SAMPLE_PIXELS:
+        slope = slope[sample]
+    return float(xp.percentile(slope, SHIFT_PERCENTILE)) * wavelength_m * distance_m / (2 * np.pi * pixel_size_m**2)
+
+
+def assess(
+    phase,
+    reference,
+    *,
+    wavelength_m: float,
+    diffuser_detector_distance_m: float,
+    pixel_size_m: float,
+    background=None,
+    limits: SensitivityLimits = SensitivityLimits(),
+) -> Sensitivity:
+    """Visibility and grain of ``reference``, the speckle shift of ``phase`` over the pixels
+    ``background`` (True = sample-free) leaves, and a one-line warning where the data carry
+    little of the phase (:class:`SensitivityLimits`)."""
+    visibility = speckle_visibility(reference)
+    grain = speckle_grain_px(reference)
+    sample = None if background is None else ~background
+    shift = speckle_shift_px(phase, wavelength_m, diffuser_detector_distance_m, pixel_size_m, sample)
+    ratio = shift / grain if grain > 0 else float("nan")
+    problems = []
+    if ratio < limits.min_shift_over_grain:
+        problems.append(
+            f"the sample moves the speckle by {ratio:.3f} of its {grain:.1f}-px grain "
+            f"(below {limits.min_shift_over_grain:g})"
+        )
+    if visibility < limits.min_visibility:
+        problems.append(f"the reference's speckle visibility is {visibility:.3f} (below {limits.min_visibility:g})")
+    warning = None
+    if problems:
+        warning = (
+            "; ".join(problems) + ": the data carry little of the phase, and the phase "
+            "returned is unreliable, mostly too low (docs/validation.md, 'What the data carry')"
+        )
+    return Sensitivity(visibility, grain, shift, ratio, warning)
