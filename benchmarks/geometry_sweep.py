@@ -91,6 +91,10 @@ def main(argv=None) -> list[dict]:
             "converged": res.converged,
             "residual_rmse_pct": res.residual_rmse,
             "wall_s": wall,
+            # PWF's own check of what the data carry (calibration.sensitivity)
+            "speckle_shift_over_grain": res.parameters["speckle_shift_over_grain"],
+            "speckle_visibility": res.parameters["speckle_visibility"],
+            "flagged": bool(res.parameters["sensitivity_warning"]),
         }
         rows.append(row)
         print(f"{scene:48s} {row['options']:42s} phase error {err['phase_error']:.3f} {wall:5.1f} s", flush=True)
@@ -102,11 +106,12 @@ def main(argv=None) -> list[dict]:
         "cellulose rod with glass beads,",
         "1e4 ph/px, seed 1; the paper's optics (true coherence lengths 3.47 / 4.31 um) but for the change named.",
         "PWF with `retrieve_projection` defaults (lengths calibrated from the reference) unless options are named.",
-        "Phase error: relative RMSE inside the sample; s: the field grid's refinement used.",
+        "Phase error: relative RMSE inside the sample; s: the field grid's refinement used; shift / grain and",
+        "visibility: what the retrieval's own check measured (flagged: it warned the data carry little phase).",
         "",
         "| scene | options | coherence (um, calibrated) | s | phase error | gain | att. error | iterations "
-        "| residual (%) | wall (s) |",
-        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| residual (%) | wall (s) | shift / grain | visibility | flagged |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for r in rows:
         its = f"{r['iterations']}" + ("" if r["converged"] else " (cap)")
@@ -114,7 +119,8 @@ def main(argv=None) -> list[dict]:
             f"| {r['scene']} | {r['options']} "
             f"| {r['coherence_x_um_calibrated']:.2f} / {r['coherence_y_um_calibrated']:.2f} "
             f"| {r['field_upsample']} | {r['phase_error']:.3f} | {r['phase_gain']:.3f} | {r['attenuation_error']:.3f} "
-            f"| {its} | {r['residual_rmse_pct']:.2f} | {r['wall_s']:.1f} |"
+            f"| {its} | {r['residual_rmse_pct']:.2f} | {r['wall_s']:.1f} | {r['speckle_shift_over_grain']:.3f} "
+            f"| {r['speckle_visibility']:.3f} | {'yes' if r['flagged'] else ''} |"
         )
     Path(out, "geometry_sweep.md").write_text("\n".join(lines) + "\n")
     return rows

@@ -91,10 +91,10 @@ def test_pwf_warns_where_the_data_carry_little_of_the_phase_and_only_there(setup
 
 
 def test_a_scans_summary_counts_the_projections_below_each_limit():
-    shift = np.array([[0.1, 0.02, np.nan], [0.01, 0.2, 0.3]])
+    shift = np.array([[0.1, 0.015, np.nan], [0.01, 0.2, 0.3]])
     visibility = np.array([[0.2, 0.2, np.nan], [0.04, 0.2, 0.2]])
     line = sensitivity_warning(shift, visibility)
-    assert "under 0.03 of its grain on 2 of 5 projections (median 0.100)" in line
+    assert "under 0.02 of its grain on 2 of 5 projections (median 0.100)" in line
     assert "visibility is under 0.05 on 1 (median 0.200)" in line
     assert sensitivity_warning(np.full((1, 3), 0.1), np.full((1, 3), 0.2)) is None
     assert sensitivity_warning(np.full((1, 3), np.nan), np.full((1, 3), np.nan)) is None

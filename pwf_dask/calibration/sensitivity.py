@@ -12,7 +12,8 @@ the reference's autocorrelation), or the speckle itself is faint, the measured f
 differs from the reference and no single-image method gets the phase back: PWF returns too
 little of it (or, rarely, too much). :func:`assess` measures d / g on the retrieved phase and the visibility on the
 reference, and words a warning where either lies below :class:`SensitivityLimits`
-(benchmarks/sensitivity_check.py: flagged scenes fail, unflagged ones mostly hold).
+(benchmarks/sensitivity_check.py: on 160 random geometries and the paper's optics at 16-25 keV
+no holding scene is flagged, and over half the failures are; the others read part of the phase).
 
 Both reference measures come from one power spectrum with its white photon-noise floor taken
 out (:func:`pwf_dask.calibration.white_noise_floor`'s corners): photon noise would otherwise
@@ -39,14 +40,15 @@ SHIFT_PERCENTILE = 99.0
 @dataclass(frozen=True)
 class SensitivityLimits:
     """Below these the data carry little of the phase (benchmarks/results/sensitivity_check.md:
-    chosen on random scenes 0-79 with no holding scene flagged, checked on 80-119).
+    on random scenes 0-79 any shift limit of 0.015-0.04 flags no holding scene, but the
+    paper's optics at 21-23 keV hold at 0.022-0.028 on one draw; checked on scenes 120-159).
 
     ``min_shift_over_grain``: the 99th percentile of the retrieved phase's speckle shift over
     the speckle grain. ``min_visibility``: the reference's rms over its mean, photon noise
     removed.
     """
 
-    min_shift_over_grain: float = 0.03
+    min_shift_over_grain: float = 0.02
     min_visibility: float = 0.05
 
 
