@@ -13,16 +13,21 @@ on the random geometries of :mod:`benchmarks.random_scenes` in three sets:
 - scenes 120-159, never looked at before this benchmark ran: the held-out check;
 - the paper's optics (its 256^2 scene, P3000) at 16-25 keV on two diffuser draws, where the
   speckle fades and the phase shrinks together: the family that set the shift limit at 0.02
-  (one draw holds at 0.022-0.028 from 21 to 23 keV).
+  (one draw holds at 0.022-0.028 from 21 to 23 keV);
+- the stability map's scene axes (:mod:`benchmarks.stability`, the paper's scene varied one axis
+  at a time), PWF with its lengths calibrated as in the map's column of that name: its failures
+  there are of the other kind (steep phase, coarse pixels, strong absorption, a short L2), which
+  the check is not meant to flag.
 
 A scene holds where its relative phase error inside the sample stays below 0.25 (as in
 ``random_scenes``). Reported per set: how many hold and fail, how many of each the warning
 flags, and the flagged and unflagged failures' gains.
 
-    python -m benchmarks.sensitivity_check [--scenes 160] [--out benchmarks/results]
+    python -m benchmarks.sensitivity_check [--scenes 160] [--out benchmarks/results] [--only-stability]
 
-Writes ``sensitivity_check.md``, ``.csv``, ``.png`` and ``sensitivity_check_energies.csv`` (about
-20 min for 160 scenes and the sweep on 2 cores).
+Writes ``sensitivity_check.md``, ``.csv``, ``.png``, ``sensitivity_check_energies.csv`` and
+``sensitivity_check_stability.csv`` (about 20 min for 160 scenes and the sweep on 2 cores, 12 more
+for the map's 44 points; ``--only-stability`` runs those alone and reads the rest back).
 """
 
 from __future__ import annotations
@@ -35,8 +40,8 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.random_scenes import run_and_report
-from benchmarks.reporting import write_rows_csv
-from benchmarks.stability import PHASE_ERROR_THRESHOLD, errors
+from benchmarks.reporting import device_name, read_rows_csv, write_rows_csv
+from benchmarks.stability import AXES, PHASE_ERROR_THRESHOLD, PWF_ONLY_AXES, errors, stability_map
 from pwf_dask.calibration import SensitivityLimits
 from pwf_dask.retrieval import retrieve_projection
 from pwf_dask.simulation import SpeckleSetup, simulate_projection
@@ -94,6 +99,43 @@ def energy_lines(rows: list[dict]) -> list[str]:
     return lines
 
 
+#: the stability map's run that the check is read on: PWF as a user runs it, lengths calibrated
+STABILITY_RUN = ("PWF K=1 calibrated", "pwf", 1, dict(max_iter=500, coherence_method="template"))
+
+
+def stability_rows(quick: bool = False) -> list[dict]:
+    """PWF, lengths calibrated, at every point of the stability map's scene axes (``pwf-dask
+    bench stability``; not its PWF-only axes, whose points hand PWF wrong lengths or take its
+    parts away): the map's error and what the check measured. ``quick``: 96^2, the axes' ends."""
+    axes = {a: v for a, v in AXES.items() if a not in PWF_ONLY_AXES}
+    if quick:
+        return stability_map(shape=(96, 96), axes={a: [v[0], v[-1]] for a, v in axes.items()}, methods=[STABILITY_RUN])
+    return stability_map(axes=axes, methods=[STABILITY_RUN])
+
+
+def stability_lines(rows: list[dict]) -> list[str]:
+    """The stability map's points as a table, failures and flags named."""
+    fails = [r for r in rows if not r["holds"]]
+    flagged_fails = sum(r["flagged"] for r in fails)
+    flagged_holds = sum(r["flagged"] for r in rows if r["holds"])
+    lines = [
+        "",
+        "The stability map's scene axes (`pwf-dask bench stability`: the paper's 256^2 scene varied one axis",
+        f"at a time), PWF with its lengths calibrated: {len(fails)} of {len(rows)} points fail, the warning flags "
+        f"{flagged_fails} of them and {flagged_holds} holding points:",
+        "",
+        "| axis | value | phase error | gain | shift / grain | visibility | flagged | holds |",
+        "|---|---|---:|---:|---:|---:|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['axis']} | {r['value']} | {r['phase_error']:.3f} | {r['phase_gain']:.2f} "
+            f"| {r['speckle_shift_over_grain']:.4f} | {r['speckle_visibility_measured']:.3f} "
+            f"| {'yes' if r['flagged'] else ''} | {'yes' if r['holds'] else ''} |"
+        )
+    return lines
+
+
 def _set_name(scene: int) -> str:
     for lo, hi, name in SETS:
         if lo <= scene < hi:
@@ -131,7 +173,13 @@ def summary_rows(rows: list[dict]) -> list[dict]:
     return out
 
 
-def write_report(rows: list[dict], out_dir: str | Path, device: str, energies: list[dict] | None = None) -> None:
+def write_report(
+    rows: list[dict],
+    out_dir: str | Path,
+    device: str,
+    energies: list[dict] | None = None,
+    stability: list[dict] | None = None,
+) -> None:
     limits = SensitivityLimits()
     lines = [
         f"# PWF's sensitivity warning on {len(rows)} random geometries ({device})",
@@ -154,6 +202,7 @@ def write_report(rows: list[dict], out_dir: str | Path, device: str, energies: l
             f"| {s['refused']} |"
         )
     lines += energy_lines(energies) if energies else []
+    lines += stability_lines(stability) if stability else []
     lines += [
         "",
         "Every random scene (phase error / gain; shift / grain and visibility as the retrieval measured them):",
@@ -210,10 +259,22 @@ def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=SETS[-1][1])
     ap.add_argument("--out", default="benchmarks/results")
+    ap.add_argument(
+        "--only-stability",
+        action="store_true",
+        help="re-run only the stability map's points; the random scenes and the energy sweep are read back from --out",
+    )
     args = ap.parse_args(argv)
+    stability = stability_rows()
+    write_rows_csv(args.out, "sensitivity_check_stability.csv", stability)
+    if args.only_stability:
+        rows = read_rows_csv(args.out, "sensitivity_check.csv")
+        energies = read_rows_csv(args.out, "sensitivity_check_energies.csv")
+        write_report(rows, args.out, device_name(np), energies, stability)
+        return rows
     energies = [energy_row(e, seed) for e in ENERGIES_KEV for seed in ENERGY_SEEDS]
     write_rows_csv(args.out, "sensitivity_check_energies.csv", energies)
-    report = partial(write_report, energies=energies)
+    report = partial(write_report, energies=energies, stability=stability)
     return run_and_report(args.scenes, ("pwf",), args.out, "sensitivity_check", report, plot)
 
 

@@ -324,6 +324,17 @@ def pwf_options(opts: dict, pwf_over: dict, setup: SpeckleSetup) -> dict:
     return kw
 
 
+def sensitivity_columns(parameters: dict) -> dict:
+    """What PWF's own check measured at a point (:mod:`pwf_dask.calibration.sensitivity`):
+    the retrieved phase's speckle shift over the grain, the reference's visibility and whether
+    it warned; NaN and False for the methods that do not measure it."""
+    return {
+        "speckle_shift_over_grain": parameters.get("speckle_shift_over_grain", np.nan),
+        "speckle_visibility_measured": parameters.get("speckle_visibility", np.nan),
+        "flagged": bool(parameters.get("sensitivity_warning")),
+    }
+
+
 def stability_map(
     shape: tuple[int, int] = (256, 256),
     axes: dict[str, list] | None = None,
@@ -404,6 +415,7 @@ def stability_map(
                     "holds": bool(err["phase_error"] < PHASE_ERROR_THRESHOLD),
                     "iterations": res.iterations,
                     "wall_s": wall,
+                    **sensitivity_columns(res.parameters),
                 }
                 rows.append(row)
                 if progress:
@@ -595,7 +607,9 @@ def run_stability_benchmark(out_dir: str | Path, quick: bool = False, axes: list
     else:
         rows = stability_map(axes=chosen)
     if axes is not None:
-        old = [r for r in read_stability_rows(kept) if r["axis"] not in chosen]
+        # rows written before a column existed get it empty, so that one CSV holds them all
+        blank = sensitivity_columns({})
+        old = [{**blank, **r} for r in read_stability_rows(kept) if r["axis"] not in chosen]
         order = list(AXES)
         rows = sorted(old + rows, key=lambda r: order.index(r["axis"]) if r["axis"] in order else len(order))
     write_stability_map(rows, out_dir, device_name(np))

@@ -166,6 +166,32 @@ def test_sensitivity_check_counts_each_set_apart_and_leaves_refusals_out():
     )
 
 
+def test_stability_points_carry_the_check_only_where_pwf_measured_it():
+    """The stability map's rows carry PWF's own check (benchmarks/stability.py), NaN and
+    unflagged for a method that does not measure it, and the check's table of the map's points
+    (benchmarks/sensitivity_check.py) counts flagged failures apart from flagged holds."""
+    import math
+
+    from benchmarks.sensitivity_check import stability_lines
+    from benchmarks.stability import sensitivity_columns
+
+    measured = sensitivity_columns(
+        {"speckle_shift_over_grain": 0.01, "speckle_visibility": 0.2, "sensitivity_warning": "faint"}
+    )
+    assert measured == {"speckle_shift_over_grain": 0.01, "speckle_visibility_measured": 0.2, "flagged": True}
+    blank = sensitivity_columns({})
+    assert math.isnan(blank["speckle_shift_over_grain"]) and blank["flagged"] is False
+
+    def row(value, error, flagged):
+        check = {"speckle_shift_over_grain": 0.1, "speckle_visibility": 0.3, "sensitivity_warning": flagged}
+        point = {"axis": "dose", "value": value, "phase_error": error, "phase_gain": 1 - error, "holds": error < 0.25}
+        return point | sensitivity_columns(check)
+
+    lines = stability_lines([row(1e2, 0.6, "faint"), row(1e3, 0.4, ""), row(1e4, 0.1, ""), row(1e5, 0.1, "faint")])
+    assert "2 of 4 points fail, the warning flags 1 of them and 1 holding points" in " ".join(lines)
+    assert lines[-4].endswith("| yes |  |") and lines[-1].endswith("| yes | yes |")
+
+
 def test_coarse_start_bins_and_interpolates_on_the_detectors_pixel_centres():
     """The coarse-to-fine start (benchmarks/coarse_start.py) is only a fair trial if its binned
     frame and the interpolation back keep the pixel centres: a plane binned 2 x 2 and
