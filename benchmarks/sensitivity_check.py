@@ -26,7 +26,7 @@ flags, and the flagged and unflagged failures' gains.
     python -m benchmarks.sensitivity_check [--scenes 160] [--out benchmarks/results] [--only-stability]
 
 Writes ``sensitivity_check.md``, ``.csv``, ``.png``, ``sensitivity_check_energies.csv`` and
-``sensitivity_check_stability.csv`` (about 20 min for 160 scenes and the sweep on 2 cores, 12 more
+``sensitivity_check_stability.csv`` (about 20 min for 160 scenes and the sweep on 2 cores, 23 more
 for the map's 44 points; ``--only-stability`` runs those alone and reads the rest back).
 """
 
