@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.reporting import device_name, write_rows_csv
-from benchmarks.stability import errors
+from benchmarks.stability import errors, sensitivity_columns
 from pwf_dask.retrieval import retrieve_projection
 from pwf_dask.simulation import SpeckleSetup, simulate_projection
 
@@ -91,10 +91,7 @@ def main(argv=None) -> list[dict]:
             "converged": res.converged,
             "residual_rmse_pct": res.residual_rmse,
             "wall_s": wall,
-            # PWF's own check of what the data carry (calibration.sensitivity)
-            "speckle_shift_over_grain": res.parameters["speckle_shift_over_grain"],
-            "speckle_visibility": res.parameters["speckle_visibility"],
-            "flagged": bool(res.parameters["sensitivity_warning"]),
+            **sensitivity_columns(res.parameters),
         }
         rows.append(row)
         print(f"{scene:48s} {row['options']:42s} phase error {err['phase_error']:.3f} {wall:5.1f} s", flush=True)
@@ -120,7 +117,7 @@ def main(argv=None) -> list[dict]:
             f"| {r['coherence_x_um_calibrated']:.2f} / {r['coherence_y_um_calibrated']:.2f} "
             f"| {r['field_upsample']} | {r['phase_error']:.3f} | {r['phase_gain']:.3f} | {r['attenuation_error']:.3f} "
             f"| {its} | {r['residual_rmse_pct']:.2f} | {r['wall_s']:.1f} | {r['speckle_shift_over_grain']:.3f} "
-            f"| {r['speckle_visibility']:.3f} | {'yes' if r['flagged'] else ''} |"
+            f"| {r['speckle_visibility_measured']:.3f} | {'yes' if r['flagged'] else ''} |"
         )
     Path(out, "geometry_sweep.md").write_text("\n".join(lines) + "\n")
     return rows

@@ -41,7 +41,7 @@ import numpy as np
 
 from benchmarks.random_scenes import run_and_report
 from benchmarks.reporting import device_name, read_rows_csv, write_rows_csv
-from benchmarks.stability import AXES, PHASE_ERROR_THRESHOLD, PWF_ONLY_AXES, errors, stability_map
+from benchmarks.stability import AXES, PHASE_ERROR_THRESHOLD, PWF_ONLY_AXES, errors, sensitivity_columns, stability_map
 from pwf_dask.calibration import SensitivityLimits
 from pwf_dask.retrieval import retrieve_projection
 from pwf_dask.simulation import SpeckleSetup, simulate_projection
@@ -72,9 +72,7 @@ def energy_row(energy_keV: float, seed: int) -> dict:
         "phase_error": err["phase_error"],
         "phase_gain": err["phase_gain"],
         "holds": bool(err["phase_error"] < PHASE_ERROR_THRESHOLD),
-        "speckle_shift_over_grain": res.parameters["speckle_shift_over_grain"],
-        "speckle_visibility_measured": res.parameters["speckle_visibility"],
-        "flagged": bool(res.parameters["sensitivity_warning"]),
+        **sensitivity_columns(res.parameters),
     }
 
 
@@ -103,13 +101,11 @@ def energy_lines(rows: list[dict]) -> list[str]:
 STABILITY_RUN = ("PWF K=1 calibrated", "pwf", 1, dict(max_iter=500, coherence_method="template"))
 
 
-def stability_rows(quick: bool = False) -> list[dict]:
+def stability_rows() -> list[dict]:
     """PWF, lengths calibrated, at every point of the stability map's scene axes (``pwf-dask
     bench stability``; not its PWF-only axes, whose points hand PWF wrong lengths or take its
-    parts away): the map's error and what the check measured. ``quick``: 96^2, the axes' ends."""
+    parts away): the map's error and what the check measured."""
     axes = {a: v for a, v in AXES.items() if a not in PWF_ONLY_AXES}
-    if quick:
-        return stability_map(shape=(96, 96), axes={a: [v[0], v[-1]] for a, v in axes.items()}, methods=[STABILITY_RUN])
     return stability_map(axes=axes, methods=[STABILITY_RUN])
 
 
