@@ -104,11 +104,12 @@ def main(argv=None) -> list[dict]:
         "1e4 ph/px, seed 1; the paper's optics (true coherence lengths 3.47 / 4.31 um) but for the change named.",
         "PWF with `retrieve_projection` defaults (lengths calibrated from the reference) unless options are named.",
         "Phase error: relative RMSE inside the sample; s: the field grid's refinement used; shift / grain and",
-        "visibility: what the retrieval's own check measured (flagged: it warned the data carry little phase).",
+        "visibility: what the retrieval's own check measured, misfit: the fit's in the sample over its background's",
+        "(flagged: it warned the data carry little phase, or the fit does not reach the sample's data).",
         "",
         "| scene | options | coherence (um, calibrated) | s | phase error | gain | att. error | iterations "
-        "| residual (%) | wall (s) | shift / grain | visibility | flagged |",
-        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        "| residual (%) | wall (s) | shift / grain | visibility | misfit | flagged |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for r in rows:
         its = f"{r['iterations']}" + ("" if r["converged"] else " (cap)")
@@ -117,7 +118,7 @@ def main(argv=None) -> list[dict]:
             f"| {r['coherence_x_um_calibrated']:.2f} / {r['coherence_y_um_calibrated']:.2f} "
             f"| {r['field_upsample']} | {r['phase_error']:.3f} | {r['phase_gain']:.3f} | {r['attenuation_error']:.3f} "
             f"| {its} | {r['residual_rmse_pct']:.2f} | {r['wall_s']:.1f} | {r['speckle_shift_over_grain']:.3f} "
-            f"| {r['speckle_visibility_measured']:.3f} | {'yes' if r['flagged'] else ''} |"
+            f"| {r['speckle_visibility_measured']:.3f} | {r['sample_misfit']:.2f} | {'yes' if r['flagged'] else ''} |"
         )
     Path(out, "geometry_sweep.md").write_text("\n".join(lines) + "\n")
     return rows

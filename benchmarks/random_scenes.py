@@ -19,7 +19,7 @@ own numbers that decide it: the 99th percentile of the speckle displacement the 
 (lambda L2 |grad phi| / 2 pi p, pixels), the speckle grain (FWHM of the reference's
 autocorrelation, pixels) and the reference's visibility (rms / mean); and for PWF what its own
 check of the data measured (``speckle_shift_over_grain`` of the retrieved phase,
-``speckle_visibility_measured``, ``flagged``: benchmarks/sensitivity_check.py).
+``speckle_visibility_measured``, ``sample_misfit``, ``flagged``: benchmarks/sensitivity_check.py).
 
     python -m benchmarks.random_scenes [--scenes 80] [--discrepancy] [--out benchmarks/results]
 
@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.reporting import device_name, write_rows_csv
-from benchmarks.stability import PHASE_ERROR_THRESHOLD, displacement_px, errors, speckle_grain_px
+from benchmarks.stability import PHASE_ERROR_THRESHOLD, displacement_px, errors, sensitivity_columns, speckle_grain_px
 from pwf_dask.physics import optics
 from pwf_dask.retrieval import retrieve_projection
 from pwf_dask.simulation import SpeckleSetup, simulate_projection
@@ -135,9 +135,7 @@ def scene_row(i: int, methods: tuple[str, ...] = METHODS) -> list[dict]:
                 coherence_x_um_used=res.coherence_length_x_m * 1e6 if res.coherence_length_x_m else np.nan,
                 coherence_y_um_used=res.coherence_length_y_m * 1e6 if res.coherence_length_y_m else np.nan,
                 # PWF's own check of what the data carry (NaN for the trackers: not measured)
-                speckle_shift_over_grain=res.parameters.get("speckle_shift_over_grain", np.nan),
-                speckle_visibility_measured=res.parameters.get("speckle_visibility", np.nan),
-                flagged=bool(res.parameters.get("sensitivity_warning")),
+                **sensitivity_columns(res.parameters),
             )
         row["wall_s"] = time.perf_counter() - t0
         row["holds"] = bool(row["phase_error"] < PHASE_ERROR_THRESHOLD)

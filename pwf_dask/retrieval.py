@@ -739,14 +739,26 @@ def retrieve_projection(
         | {"background_planes": planes},
         background=mask,
     )
-    return _with_sensitivity(res, ref, energy_eV, pixel_size_m, diffuser_detector_distance_m)
+    return _with_sensitivity(
+        res, ref, energy_eV, pixel_size_m, diffuser_detector_distance_m, intensity=y / scale, excluded=excluded
+    )
 
 
-def _with_sensitivity(res: RetrievalResult, reference, energy_eV, pixel_size_m, diffuser_detector_distance_m):
+def _with_sensitivity(
+    res: RetrievalResult,
+    reference,
+    energy_eV,
+    pixel_size_m,
+    diffuser_detector_distance_m,
+    intensity=None,
+    excluded=None,
+):
     """``res`` with what the speckle could carry in its parameters
     (:func:`pwf_dask.calibration.sensitivity.assess`: the speckle's visibility and grain, the
-    phase's speckle shift, and a warning where the data carry little of the phase). PWF's
-    only: its limits were chosen on PWF's phase, and a tracker's noisier phase reads steeper."""
+    phase's speckle shift, the fit's misfit in the sample against its background where the
+    measured ``intensity`` is given, and a warning where the data carry little of the phase or
+    the model does not fit the sample). PWF's only: its limits were chosen on PWF's phase, and
+    a tracker's noisier phase reads steeper."""
     xp = get_array_module(res.phase)
     found = sensitivity.assess(
         res.phase,
@@ -755,6 +767,9 @@ def _with_sensitivity(res: RetrievalResult, reference, energy_eV, pixel_size_m, 
         diffuser_detector_distance_m=diffuser_detector_distance_m,
         pixel_size_m=pixel_size_m,
         background=None if res.background is None else xp.asarray(res.background),
+        residual=None if intensity is None else res.residual,
+        intensity=intensity,
+        excluded=excluded,
     )
     res.parameters.update(found.parameters())
     return res

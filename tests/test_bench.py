@@ -176,9 +176,19 @@ def test_stability_points_carry_the_check_only_where_pwf_measured_it():
     from benchmarks.stability import sensitivity_columns
 
     measured = sensitivity_columns(
-        {"speckle_shift_over_grain": 0.01, "speckle_visibility": 0.2, "sensitivity_warning": "faint"}
+        {
+            "speckle_shift_over_grain": 0.01,
+            "speckle_visibility": 0.2,
+            "sample_misfit": 1.6,
+            "sensitivity_warning": "faint",
+        }
     )
-    assert measured == {"speckle_shift_over_grain": 0.01, "speckle_visibility_measured": 0.2, "flagged": True}
+    assert measured == {
+        "speckle_shift_over_grain": 0.01,
+        "speckle_visibility_measured": 0.2,
+        "sample_misfit": 1.6,
+        "flagged": True,
+    }
     blank = sensitivity_columns({})
     assert math.isnan(blank["speckle_shift_over_grain"]) and blank["flagged"] is False
 
@@ -189,7 +199,8 @@ def test_stability_points_carry_the_check_only_where_pwf_measured_it():
 
     lines = stability_lines([row(1e2, 0.6, "faint"), row(1e3, 0.4, ""), row(1e4, 0.1, ""), row(1e5, 0.1, "faint")])
     assert "2 of 4 points fail, the warning flags 1 of them and 1 holding points" in " ".join(lines)
-    assert lines[-4].endswith("| yes |  |") and lines[-1].endswith("| yes | yes |")
+    # the misfit's column is blank where a row did not measure it
+    assert lines[-4].endswith("|  | yes |  |") and lines[-1].endswith("|  | yes | yes |")
 
 
 def test_coarse_start_bins_and_interpolates_on_the_detectors_pixel_centres():

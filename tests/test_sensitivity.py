@@ -64,8 +64,10 @@ def test_assess_words_each_limit_it_finds_broken(rng):
         "speckle_grain_px",
         "speckle_shift_px",
         "speckle_shift_over_grain",
+        "sample_misfit",
         "sensitivity_warning",
     }
+    assert np.isnan(found.sample_misfit)  # no residual given: not measured
 
 
 @pytest.mark.parametrize(
@@ -88,6 +90,7 @@ def test_pwf_warns_where_the_data_carry_little_of_the_phase_and_only_there(setup
     else:
         assert p["speckle_shift_over_grain"] > 2 * limits.min_shift_over_grain and gain > 0.7
         assert p["speckle_visibility"] > 4 * limits.min_visibility
+        assert 0.8 < p["sample_misfit"] < 1.1  # fitted to the noise in the sample as in its background
 
 
 def test_a_scans_summary_counts_the_projections_below_each_limit():
@@ -98,6 +101,10 @@ def test_a_scans_summary_counts_the_projections_below_each_limit():
     assert "visibility is under 0.05 on 1 (median 0.200)" in line
     assert sensitivity_warning(np.full((1, 3), 0.1), np.full((1, 3), 0.2)) is None
     assert sensitivity_warning(np.full((1, 3), np.nan), np.full((1, 3), np.nan)) is None
+    misfit = np.array([[1.0, 2.5, np.nan], [1.4, 0.9, 1.1]])
+    line = sensitivity_warning(np.full((2, 3), 0.1), np.full((2, 3), 0.2), misfit)
+    assert line.startswith("the fit leaves over 1.3 times the background's misfit inside the sample on 2 of 5")
+    assert "(the largest 2.50)" in line
 
 
 @pytest.mark.gpu
@@ -106,8 +113,49 @@ def test_the_check_runs_on_the_device_and_gives_the_host_numbers(cupy, rng):
     y, x = np.mgrid[:256, :256]
     r = np.hypot(y - 128, x - 128)
     phase = np.where(r < 40, -0.02 * (40 - r), 0.0)
+    residual = np.abs(rng.standard_normal(phase.shape)) * (1 + (r < 40))
     kw = dict(wavelength_m=1.24e-10, diffuser_detector_distance_m=0.02, pixel_size_m=0.65e-6)
-    host = sensitivity.assess(phase, reference, background=r >= 44, **kw)
-    device = sensitivity.assess(cupy.asarray(phase), cupy.asarray(reference), background=cupy.asarray(r >= 44), **kw)
+    host = sensitivity.assess(phase, reference, background=r >= 44, residual=residual, intensity=reference, **kw)
+    on = cupy.asarray
+    device = sensitivity.assess(
+        on(phase), on(reference), background=on(r >= 44), residual=on(residual), intensity=on(reference), **kw
+    )
+    assert host.sample_misfit > 1.3 and "misfit inside the sample" in host.warning
     for name, value in host.parameters().items():
         assert device.parameters()[name] == (pytest.approx(value, rel=1e-9) if isinstance(value, float) else value)
+
+
+def test_sample_misfit_reads_the_noise_scale_inside_the_sample_against_its_background(rng):
+    """A fit to the photon noise leaves residuals of sqrt(intensity) times a unit noise: the
+    ratio reads 1 on a dark sample as on the bright background, twice the noise inside the
+    sample reads 2, and pixels left out of the fit do not count."""
+    y, x = np.mgrid[:128, :128]
+    sample = np.hypot(y - 64, x - 64) < 30
+    intensity = np.where(sample, 0.25, 1.0)
+    noise = np.abs(rng.standard_normal(sample.shape)) * np.sqrt(intensity)
+    assert sensitivity.sample_misfit(noise, intensity, ~sample) == pytest.approx(1.0, abs=0.05)
+    assert sensitivity.sample_misfit(np.where(sample, 2 * noise, noise), intensity, ~sample) == pytest.approx(
+        2.0, abs=0.1
+    )
+    hot = np.zeros(sample.shape, dtype=bool)
+    hot[60:64, 60:64] = True
+    assert sensitivity.sample_misfit(np.where(hot, 1e3, noise), intensity, ~sample, excluded=hot) == pytest.approx(
+        1.0, abs=0.05
+    )
+    assert np.isnan(sensitivity.sample_misfit(noise, intensity, np.zeros(sample.shape, dtype=bool)))
+
+
+def test_pwf_warns_where_its_model_does_not_reach_a_steep_samples_data():
+    """The stability map's 100 pi point on a 128^2 frame (PWF, lengths calibrated): the phase is
+    lost (gain 0.14) with the speckle moved far more than the shift limit, and the fit leaves
+    3.6 times the background's misfit in the sample; at 3 pi it fits to the noise (0.95)."""
+    from benchmarks.sensitivity_check import STABILITY_RUN
+    from benchmarks.stability import stability_map
+
+    steep, mild = stability_map(
+        shape=(128, 128), axes={"max_phase_pi": [100.0, 3.0]}, methods=[STABILITY_RUN], progress=False
+    )
+    limits = SensitivityLimits()
+    assert steep["phase_gain"] < 0.5 and steep["speckle_shift_over_grain"] > 5 * limits.min_shift_over_grain
+    assert steep["sample_misfit"] > 2 * limits.max_sample_misfit and steep["flagged"]
+    assert mild["holds"] and mild["sample_misfit"] < 1.1 and not mild["flagged"]

@@ -77,6 +77,8 @@ def test_contract_layout(tiny_scan, tmp_path):
     limits = SensitivityLimits()
     assert (ds["speckle_shift_over_grain"].values > limits.min_shift_over_grain).all()
     assert (ds["speckle_visibility"].values > 2 * limits.min_visibility).all()
+    # and its fit leaves no more misfit in the sample than in the background
+    assert (ds["sample_misfit"].values < limits.max_sample_misfit).all()
 
 
 def test_a_run_says_in_one_line_where_the_data_carry_little_of_the_phase(fast_recon, monkeypatch, caplog):

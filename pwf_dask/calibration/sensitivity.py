@@ -15,6 +15,15 @@ reference, and words a warning where either lies below :class:`SensitivityLimits
 (benchmarks/sensitivity_check.py: on 160 random geometries and the paper's optics at 16-25 keV
 no holding scene is flagged, and over half the failures are; the others read part of the phase).
 
+The other way to fail is the fit's own: where the sample is too steep or too dark for the
+iteration to follow (a phase wrapped by several pi, a local minimum), the model leaves misfit
+in the sample that it does not leave in the background. :func:`sample_misfit` compares the two
+on the photon-noise scale, and :func:`assess` warns above ``max_sample_misfit`` (session 84:
+the stability map's 100 pi and 10x absorption points read 2.75 and 1.61, every holding scene
+of the random geometries and the map at most 1.13). Where the data fit but carry the phase
+only in part (the random geometries' middle band), the misfit is the background's too: the
+failures there fit their data as well as the holding scenes do, and no residual tells them apart.
+
 Both reference measures come from one power spectrum with its white photon-noise floor taken
 out (:func:`pwf_dask.calibration.white_noise_floor`'s corners): photon noise would otherwise
 add to the visibility and narrow the autocorrelation. Every function runs on its input's
@@ -45,11 +54,13 @@ class SensitivityLimits:
 
     ``min_shift_over_grain``: the 99th percentile of the retrieved phase's speckle shift over
     the speckle grain. ``min_visibility``: the reference's rms over its mean, photon noise
-    removed.
+    removed. ``max_sample_misfit``: :func:`sample_misfit`, the sample's misfit over the
+    background's (above it the model does not fit the sample; benchmarks/results/sensitivity_check.md).
     """
 
     min_shift_over_grain: float = 0.02
     min_visibility: float = 0.05
+    max_sample_misfit: float = 1.3
 
 
 @dataclass(frozen=True)
@@ -61,6 +72,7 @@ class Sensitivity:
     speckle_shift_px: float
     shift_over_grain: float
     warning: str | None
+    sample_misfit: float = float("nan")  # NaN: not measured (no residual, or no background)
 
     def parameters(self) -> dict:
         """The record ``RetrievalResult.parameters`` keeps."""
@@ -69,6 +81,7 @@ class Sensitivity:
             "speckle_grain_px": self.speckle_grain_px,
             "speckle_shift_px": self.speckle_shift_px,
             "speckle_shift_over_grain": self.shift_over_grain,
+            "sample_misfit": self.sample_misfit,
             "sensitivity_warning": self.warning,
         }
 
@@ -155,6 +168,29 @@ def speckle_shift_px(phase, wavelength_m: float, distance_m: float, pixel_size_m
     return float(xp.percentile(slope, SHIFT_PERCENTILE)) * wavelength_m * distance_m / (2 * np.pi * pixel_size_m**2)
 
 
+#: the transmission below which a pixel's photon noise is taken as at this floor: a nearly
+#: opaque pixel's few counts would otherwise weigh its misfit without bound
+MISFIT_INTENSITY_FLOOR = 0.05
+
+
+def sample_misfit(residual, intensity, background, excluded=None) -> float:
+    """The data misfit inside the sample over the misfit in its background, each the rms of
+    ``residual / sqrt(intensity)`` (both relative to the mean reference; Poisson noise's
+    standard deviation goes as the root of the intensity, so a fit to the noise reads 1 on a
+    dark sample as on the bright background). ``background``: True = sample-free;
+    ``excluded``: pixels left out of the fit. NaN where either side has fewer than
+    :data:`MIN_SAMPLE_PIXELS` pixels."""
+    xp = get_array_module(residual)
+    r = xp.asarray(residual, dtype=xp.float64)
+    weighted = r * r / xp.maximum(xp.asarray(intensity, dtype=xp.float64), MISFIT_INTENSITY_FLOOR)
+    fitted = xp.ones(r.shape, dtype=bool) if excluded is None else ~xp.asarray(excluded)
+    bg = xp.asarray(background) & fitted
+    sample = ~xp.asarray(background) & fitted
+    if int(bg.sum()) < MIN_SAMPLE_PIXELS or int(sample.sum()) < MIN_SAMPLE_PIXELS:
+        return float("nan")
+    return float(xp.sqrt(weighted[sample].mean() / weighted[bg].mean()))
+
+
 def assess(
     phase,
     reference,
@@ -163,11 +199,16 @@ def assess(
     diffuser_detector_distance_m: float,
     pixel_size_m: float,
     background=None,
+    residual=None,
+    intensity=None,
+    excluded=None,
     limits: SensitivityLimits = SensitivityLimits(),
 ) -> Sensitivity:
     """Visibility and grain of ``reference``, the speckle shift of ``phase`` over the pixels
-    ``background`` (True = sample-free) leaves, and a one-line warning where the data carry
-    little of the phase (:class:`SensitivityLimits`)."""
+    ``background`` (True = sample-free) leaves, the fit's :func:`sample_misfit` where the
+    ``residual`` and the measured ``intensity`` are given, and a one-line warning where the
+    data carry little of the phase or the model does not fit the sample
+    (:class:`SensitivityLimits`)."""
     visibility = speckle_visibility(reference)
     grain = speckle_grain_px(reference)
     sample = None if background is None else ~background
@@ -181,10 +222,25 @@ def assess(
         )
     if visibility < limits.min_visibility:
         problems.append(f"the reference's speckle visibility is {visibility:.3f} (below {limits.min_visibility:g})")
-    warning = None
+    warnings = []
     if problems:
-        warning = (
+        warnings.append(
             "; ".join(problems) + ": the data carry little of the phase, and the phase "
             "returned is unreliable, mostly too low (docs/validation.md, 'What the data carry')"
         )
-    return Sensitivity(visibility, grain, shift, ratio, warning)
+    misfit = float("nan")
+    if residual is not None and intensity is not None and background is not None:
+        misfit = sample_misfit(residual, intensity, background, excluded)
+    if misfit > limits.max_sample_misfit:
+        warnings.append(misfit_warning(misfit, limits))
+    return Sensitivity(visibility, grain, shift, ratio, "; ".join(warnings) or None, misfit)
+
+
+def misfit_warning(misfit: float, limits: SensitivityLimits = SensitivityLimits()) -> str:
+    """The words for a fit that leaves ``misfit`` times the background's misfit in the sample."""
+    return (
+        f"the fit leaves {misfit:.2f} times the background's misfit inside the sample (above "
+        f"{limits.max_sample_misfit:g}): the model does not reach the sample's data (a steep or "
+        "strongly absorbing sample, a local minimum), and the phase returned is unreliable "
+        "(docs/validation.md, 'What the data carry')"
+    )

@@ -323,7 +323,7 @@ def _retrieved(item, recon_path, t0: float, res):
         out["background_plane_attenuation"][p, a] = np.asarray(planes["attenuation"], np.float64)
     if "diffuser_drift_px" in res.parameters and "diffuser_drift_y_px" in out:
         out["diffuser_drift_y_px"][p, a], out["diffuser_drift_x_px"][p, a] = res.parameters["diffuser_drift_px"]
-    for name in ("speckle_shift_over_grain", "speckle_visibility"):
+    for name in ("speckle_shift_over_grain", "speckle_visibility", "sample_misfit"):
         if name in res.parameters and name in out:  # stores made before the check lack them
             out[name][p, a] = np.float32(res.parameters[name])
     seconds = time.perf_counter() - t0
@@ -776,40 +776,54 @@ def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, co
     return {"computed": len(results), "wall_s": wall, "coherence": coherence, "tasks": results}
 
 
-def sensitivity_warning(shift_over_grain: np.ndarray, visibility: np.ndarray) -> str | None:
-    """One line where some projections lie below :class:`pwf_dask.calibration.SensitivityLimits`
-    (the data carry little of their phase), else None; NaN (not measured) counts as neither."""
+def sensitivity_warning(
+    shift_over_grain: np.ndarray, visibility: np.ndarray, misfit: np.ndarray | None = None
+) -> str | None:
+    """One line where some projections lie beyond :class:`pwf_dask.calibration.SensitivityLimits`
+    (the data carry little of their phase, or the model does not fit the sample), else None;
+    NaN (not measured) counts as neither."""
     from pwf_dask.calibration import SensitivityLimits
 
     limits = SensitivityLimits()
     measured = np.isfinite(shift_over_grain)
     small = measured & (shift_over_grain < limits.min_shift_over_grain)
     faint = measured & (visibility < limits.min_visibility)
-    if not (small | faint).any():
-        return None
-    parts = []
-    if small.any():
-        median = float(np.median(shift_over_grain[measured]))
-        parts.append(
-            f"the sample moves the speckle by under {limits.min_shift_over_grain:g} of its grain on "
-            f"{int(small.sum())} of {int(measured.sum())} projections (median {median:.3f})"
+    misfit = np.full(np.shape(shift_over_grain), np.nan) if misfit is None else np.asarray(misfit)
+    unfit = np.isfinite(misfit) & (misfit > limits.max_sample_misfit)
+    lines = []
+    if (small | faint).any():
+        parts = []
+        if small.any():
+            median = float(np.median(shift_over_grain[measured]))
+            parts.append(
+                f"the sample moves the speckle by under {limits.min_shift_over_grain:g} of its grain on "
+                f"{int(small.sum())} of {int(measured.sum())} projections (median {median:.3f})"
+            )
+        if faint.any():
+            parts.append(
+                f"the reference's speckle visibility is under {limits.min_visibility:g} on {int(faint.sum())} "
+                f"(median {np.median(visibility[measured]):.3f})"
+            )
+        lines.append(
+            "; ".join(parts) + ": the data carry little of the phase there, and the phase returned is "
+            "unreliable, mostly too low (docs/validation.md, 'What the data carry')"
         )
-    if faint.any():
-        parts.append(
-            f"the reference's speckle visibility is under {limits.min_visibility:g} on {int(faint.sum())} "
-            f"(median {np.median(visibility[measured]):.3f})"
+    if unfit.any():
+        lines.append(
+            f"the fit leaves over {limits.max_sample_misfit:g} times the background's misfit inside the "
+            f"sample on {int(unfit.sum())} of {int(np.isfinite(misfit).sum())} projections (the largest "
+            f"{float(misfit[unfit].max()):.2f}): the model does not reach the sample's data there, and the "
+            "phase returned is unreliable (docs/validation.md, 'What the data carry')"
         )
-    return (
-        "; ".join(parts) + ": the data carry little of the phase there, and the phase returned is "
-        "unreliable, mostly too low (docs/validation.md, 'What the data carry')"
-    )
+    return "; ".join(lines) or None
 
 
 def _warn_sensitivity(grp) -> None:
     """Log :func:`sensitivity_warning` of the store's projections (all of them, resumed runs too)."""
     if "speckle_shift_over_grain" not in grp:
         return
-    line = sensitivity_warning(grp["speckle_shift_over_grain"][...], grp["speckle_visibility"][...])
+    misfit = grp["sample_misfit"][...] if "sample_misfit" in grp else None  # stores made before session 84 lack it
+    line = sensitivity_warning(grp["speckle_shift_over_grain"][...], grp["speckle_visibility"][...], misfit)
     if line:
         log.warning(f"retrieve: warning: {line}")
 

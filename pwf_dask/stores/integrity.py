@@ -310,6 +310,7 @@ _OPTIONAL = (
     "diffuser_drift_x_px",
     "speckle_shift_over_grain",
     "speckle_visibility",
+    "sample_misfit",
     "background_plane_phase",
     "background_plane_attenuation",
 )

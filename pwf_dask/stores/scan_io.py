@@ -340,6 +340,7 @@ VARIABLE_ATTRS: dict[str, tuple[str, str]] = {
     "diffuser_drift_x_px": ("pixel", "measured speckle drift against the reference, columns"),
     "speckle_shift_over_grain": ("1", "99th percentile of the phase's speckle shift over the speckle grain (PWF)"),
     "speckle_visibility": ("1", "reference speckle's rms over its mean, photon noise removed (PWF)"),
+    "sample_misfit": ("1", "data misfit inside the sample over its background's, on the photon-noise scale (PWF)"),
     "background_plane_phase": ("rad", "plane subtracted from the phase (constant, row and column slopes per frame)"),
     "background_plane_attenuation": ("1", "plane subtracted from the attenuation (constant, row and column slopes)"),
     "delta": ("1", "refractive index decrement delta"),
@@ -490,7 +491,7 @@ def _build_reconstruction(path: str, info: ScanInfo, params: dict) -> None:
     for name in ("diffuser_drift_y_px", "diffuser_drift_x_px"):
         create_variable(g, name, (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
     # what the speckle could carry (calibration.sensitivity): below its limits the phase is unreliable
-    for name in ("speckle_shift_over_grain", "speckle_visibility"):
+    for name in ("speckle_shift_over_grain", "speckle_visibility", "sample_misfit"):
         create_variable(g, name, (npos, nang), (1, 1), ("position", "angle"), "float32", np.nan)
     # what the background fit took from PWF's psi: a warm-started chain adds it back to start
     # from the solver's own psi (a tilt left out moves the whole speckle; workflow._start_psi)
