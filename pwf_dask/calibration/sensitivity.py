@@ -20,7 +20,7 @@ iteration to follow (a phase wrapped by several pi, a local minimum), the model 
 in the sample that it does not leave in the background. :func:`sample_misfit` compares the two
 on the photon-noise scale, and :func:`assess` warns above ``max_sample_misfit`` (session 84:
 the stability map's 100 pi and 10x absorption points read 2.75 and 1.61, every holding scene
-of the random geometries and the map at most 1.13). Where the data fit but carry the phase
+of 151 random geometries at most 1.19). Where the data fit but carry the phase
 only in part (the random geometries' middle band), the misfit is the background's too: the
 failures there fit their data as well as the holding scenes do, and no residual tells them apart.
 
