@@ -788,8 +788,6 @@ def sensitivity_warning(
     measured = np.isfinite(shift_over_grain)
     small = measured & (shift_over_grain < limits.min_shift_over_grain)
     faint = measured & (visibility < limits.min_visibility)
-    misfit = np.full(np.shape(shift_over_grain), np.nan) if misfit is None else np.asarray(misfit)
-    unfit = np.isfinite(misfit) & (misfit > limits.max_sample_misfit)
     lines = []
     if (small | faint).any():
         parts = []
@@ -808,14 +806,24 @@ def sensitivity_warning(
             "; ".join(parts) + ": the data carry little of the phase there, and the phase returned is "
             "unreliable, mostly too low (docs/validation.md, 'What the data carry')"
         )
-    if unfit.any():
-        lines.append(
-            f"the fit leaves over {limits.max_sample_misfit:g} times the background's misfit inside the "
-            f"sample on {int(unfit.sum())} of {int(np.isfinite(misfit).sum())} projections (the largest "
-            f"{float(misfit[unfit].max()):.2f}): the model does not reach the sample's data there, and the "
-            "phase returned is unreliable (docs/validation.md, 'What the data carry')"
-        )
-    return "; ".join(lines) or None
+    if misfit is not None:
+        lines.append(_unfit_line(np.asarray(misfit), limits.max_sample_misfit))
+    return "; ".join(line for line in lines if line) or None
+
+
+def _unfit_line(misfit: np.ndarray, limit: float) -> str | None:
+    """The summary's words for the projections whose fit leaves over ``limit`` times the
+    background's misfit in the sample (:func:`pwf_dask.calibration.sensitivity.sample_misfit`)."""
+    measured = np.isfinite(misfit)
+    unfit = measured & (misfit > limit)
+    if not unfit.any():
+        return None
+    return (
+        f"the fit leaves over {limit:g} times the background's misfit inside the sample on "
+        f"{int(unfit.sum())} of {int(measured.sum())} projections (the largest {float(misfit[unfit].max()):.2f}): "
+        "the model does not reach the sample's data there, and the phase returned is unreliable "
+        "(docs/validation.md, 'What the data carry')"
+    )
 
 
 def _warn_sensitivity(grp) -> None:
