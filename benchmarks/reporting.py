@@ -38,9 +38,10 @@ def interleaved_min(fns, sync, rounds: int, min_time: float = 0.15) -> list[floa
 
 def command_line(module: str, argv=None) -> str:
     """How a benchmark's files were made, for their header: ``python -m module`` and its
-    arguments (``argv``, else the process's), quoted for a shell, ``--out DIR`` left out:
-    where the files went is not how they were made."""
-    given = list(sys.argv[1:] if argv is None else argv)
+    arguments (``argv``, else the process's), quoted for a shell, ``--out DIR`` and
+    ``--report-only`` left out: where the files went, or that the report was written again from
+    the CSV, is not how they were made."""
+    given = [a for a in (sys.argv[1:] if argv is None else argv) if a != "--report-only"]
     if "--out" in given:
         del given[given.index("--out") : given.index("--out") + 2]
     return shlex.join(["python", "-m", module, *given])

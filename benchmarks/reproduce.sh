@@ -28,6 +28,8 @@
 #                      (cylinder_draws_why.*: --why, ~6 min: 8 diffuser draws, estimated and true t, noise-free;
 #                      cylinder_draws_1e3.*: at 1e3 ph/px, ~14 min; cylinder_draws_96rows.*: 96 rows, P3000, ~10 min)
 #   coherence_sensitivity.* ~12 min: phase gain against coherence-length error (0.7-1.3x), every other default
+#   detector_psf.*     ~15 min: PWF (calibrated, given the blurred lengths) and UMPA K=1 under the detector's own blur
+#   position_agreement.* ~25 min: two diffuser positions' retrievals of the random geometries: do they agree where PWF fails?
 #   coarse_start.*     ~25 min: a coarse-to-fine start (2x2 binned solve) against zero and the true psi
 #   probe_window.*     ~7 min: "auto"'s diffuser probe on a window of wide frames against the whole frame
 #   probe_iterations.* ~25 min: "auto"'s diffuser probe at 10 / 20 / 40 iterations on the random scenes and strips
@@ -76,6 +78,8 @@ case "${1:-all}" in
   demo-dose) "$(dirname "$PWF")/python" -m benchmarks.demo_dose --out "$OUT" ;;
   random-scenes) "$(dirname "$PWF")/python" -m benchmarks.random_scenes --out "$OUT" ;;
   sensitivity-check) "$(dirname "$PWF")/python" -m benchmarks.sensitivity_check --out "$OUT" ;;
+  detector-psf) "$(dirname "$PWF")/python" -m benchmarks.detector_psf --out "$OUT" ;;
+  position-agreement) "$(dirname "$PWF")/python" -m benchmarks.position_agreement --out "$OUT" ;;
   sensitivity-check-stability) "$(dirname "$PWF")/python" -m benchmarks.sensitivity_check --only-stability --out "$OUT" ;;
   diffuser-models) "$(dirname "$PWF")/python" -m benchmarks.diffuser_models --out "$OUT" ;;
   fbp) "$PWF" bench fbp --out "$OUT" ;;
@@ -86,6 +90,6 @@ case "${1:-all}" in
   fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --part all --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-edge cylinder-draws-single-material cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes sensitivity-check diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|cylinder-draws|cylinder-draws-why|cylinder-draws-edge|cylinder-draws-single-material|cylinder-draws-1e3|cylinder-draws-96rows|coherence-sensitivity|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|sensitivity-check|sensitivity-check-stability|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-edge cylinder-draws-single-material cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity detector-psf coarse-start probe-window probe-iterations demo-dose random-scenes sensitivity-check position-agreement diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|cylinder-draws|cylinder-draws-why|cylinder-draws-edge|cylinder-draws-single-material|cylinder-draws-1e3|cylinder-draws-96rows|coherence-sensitivity|detector-psf|position-agreement|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|sensitivity-check|sensitivity-check-stability|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
 esac

@@ -83,6 +83,8 @@ def _simulate(args) -> int:
         diffuser_radius_median_m=None if args.grain_radius_um is None else args.grain_radius_um * 1e-6,
         diffuser_grain_shape=args.grain_shape,
         beads=not args.no_beads,
+        detector_blur_fwhm_m=args.detector_blur_um * 1e-6,
+        detector_halo=(args.detector_halo[0], args.detector_halo[1] * 1e-6),
     )
     print(f"wrote scan {path}")
     return 0
@@ -145,6 +147,14 @@ def retrieval_kwargs(args) -> dict:
         **({"single_material": True} if args.single_material else {}),
         # None: the scan's recorded diffuser_upstream_m (0 when it has none)
         **({} if args.diffuser_upstream_m is None else {"diffuser_upstream_m": args.diffuser_upstream_m}),
+        **(
+            {}
+            if args.detector_halo is None
+            else {
+                "detector_halo_fraction": args.detector_halo[0],
+                "detector_halo_radius_m": args.detector_halo[1] * 1e-6,
+            }
+        ),
     )
 
 
@@ -428,6 +438,15 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
         "is propagated to the sample (default: the scan's diffuser_upstream_m attribute, else 0)",
     )
     p.add_argument(
+        "--detector-halo",
+        type=float,
+        nargs=2,
+        metavar=("FRACTION", "RADIUS_UM"),
+        help="pwf: the detector spreads FRACTION of the light over an exponential halo of this 1/e radius in "
+        "um (scattered scintillation light, from the detector's measured MTF); modelled beside the IOTF "
+        "(default: none, the paper's model)",
+    )
+    p.add_argument(
         "--diffuser-material",
         default=DEFAULTS.diffuser_material,
         help="the diffuser's material, for its beta/delta (xraydb): silicon carbide, alumina, ...",
@@ -569,6 +588,23 @@ def _simulate_command(command) -> None:
         default="spheres",
         choices=list(GRAIN_SHAPES),
         help="the diffuser's grains: spheres (default), faceted (pyramids, like crushed SiC) or mixed",
+    )
+    s.add_argument(
+        "--detector-blur-um",
+        type=float,
+        default=0.0,
+        metavar="FWHM",
+        help="the detector's own blur (scintillator, microscope): a Gaussian of this FWHM in um on the "
+        "intensity before the pixels (default 0: none)",
+    )
+    s.add_argument(
+        "--detector-halo",
+        type=float,
+        nargs=2,
+        default=(0.0, 0.0),
+        metavar=("FRACTION", "RADIUS_UM"),
+        help="a fraction of the light the detector spreads over an exponential halo of this 1/e radius in "
+        "um (scattered scintillation light; default 0 0: none)",
     )
     s.set_defaults(func=_simulate)
 

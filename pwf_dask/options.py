@@ -58,6 +58,10 @@ class RetrievalOptions:
     coherence_length_y_m: float | None = None
     coherence_method: str = DEFAULT_COHERENCE_METHOD
     coherence_includes_pixel_blur: bool = False
+    #: the detector's halo beside the IOTF: this fraction of the light over an exponential of
+    #: this 1/e radius (its Gaussian core is in the calibrated lengths); 0: none, the paper's model
+    detector_halo_fraction: float = 0.0
+    detector_halo_radius_m: float = 0.0
     # computational grids
     upsample: int | str = "auto"
     pad: int | str = "auto"

@@ -301,6 +301,8 @@ def estimate_diffuser(
     diffuser_refine_iter: int = DEFAULTS.diffuser_refine_iter,
     phase_screen_iter: int = DEFAULTS.phase_screen_iter,
     diffuser_upstream_m: float = DEFAULTS.diffuser_upstream_m,
+    detector_halo_fraction: float = DEFAULTS.detector_halo_fraction,
+    detector_halo_radius_m: float = DEFAULTS.detector_halo_radius_m,
     fft_workers: int | None = None,
 ):
     """The diffuser t_r exactly as :func:`retrieve_projection` estimates it with the same
@@ -338,6 +340,8 @@ def estimate_diffuser(
         beta_over_delta=kappa,
         refine_iter=diffuser_refine_iter,
         upstream_m=diffuser_upstream_m,
+        detector_halo_fraction=detector_halo_fraction,
+        detector_halo_radius_m=detector_halo_radius_m,
         fft=FFT.for_module(xp, fft_workers),
     )
 
@@ -1179,6 +1183,7 @@ def _checked_pwf_options(
     alpha = parse_alpha(opts.alpha)
     _check_start(opts.initial, image_shape, opts.restart)
     check_diffuser_drift(opts.diffuser_drift)
+    optics.check_detector_blur(0.0, opts.detector_halo_fraction, opts.detector_halo_radius_m)
     field_upsample = check_field_upsample(opts.field_upsample)
     check_sample_field_grid(opts.sample_field_grid)
     prior = _single_material_prior(opts.single_material, opts.sample_material, opts.sample_delta_over_beta, geometry)
@@ -1225,6 +1230,8 @@ def _transmission(ref, diffuser, opts: RetrievalOptions, geometry: Geometry, coh
             diffuser_refine_iter=opts.diffuser_refine_iter,
             phase_screen_iter=opts.phase_screen_iter,
             diffuser_upstream_m=geometry.diffuser_upstream_m,
+            detector_halo_fraction=opts.detector_halo_fraction,
+            detector_halo_radius_m=opts.detector_halo_radius_m,
             fft_workers=fft.workers,
         )
     t = get_array_module(ref).asarray(diffuser)
@@ -1248,6 +1255,8 @@ def _model_builder(t, frame_shape, geometry: Geometry, coherence: _Coherence, op
         coherence_length_x_m=coherence.x_m,
         coherence_length_y_m=coherence.y_m,
         pixel_integration=coherence.pixel_integration,
+        detector_halo_fraction=opts.detector_halo_fraction,
+        detector_halo_radius_m=opts.detector_halo_radius_m,
         gamma=opts.gamma,
         alpha=solver.PAPER_ALPHA if opts.alpha == "discrepancy" else opts.alpha,  # each rung rebuilds it
         use_preconditioner=opts.preconditioner,
@@ -1387,6 +1396,8 @@ def _parameters(
         "diffuser_beta_over_delta": kappa,
         "diffuser_refine_iter": opts.diffuser_refine_iter,
         "diffuser_upstream_m": opts.diffuser_upstream_m,
+        "detector_halo_fraction": opts.detector_halo_fraction,
+        "detector_halo_radius_m": opts.detector_halo_radius_m,
         "restarts": solved.restarts,
         "backtracks": solved.backtracks,
         "stop_reason": solved.sol.stop_reason,

@@ -363,7 +363,7 @@ def test_cylinder_edge_softens_the_outline_and_keeps_the_body_and_reads_its_core
 
 def test_a_benchmarks_header_names_the_command_that_made_it_without_its_output_folder():
     """The results' headers (benchmarks/reporting.command_line): the arguments as given, a
-    grain with a space quoted so the line runs as printed, ``--out DIR`` left out."""
+    grain with a space quoted so the line runs as printed, ``--out DIR`` and ``--report-only`` left out."""
     import shlex
 
     from benchmarks.reporting import command_line
@@ -373,3 +373,22 @@ def test_a_benchmarks_header_names_the_command_that_made_it_without_its_output_f
     assert line == "python -m benchmarks.cylinder_draws --photons 1e3 --grains P3000 '1.2 um'"
     assert shlex.split(line)[3:] == ["--photons", "1e3", "--grains", "P3000", "1.2 um"]
     assert command_line("benchmarks.cylinder_rows", []) == "python -m benchmarks.cylinder_rows"
+    # a report written again from its CSV names the run that made the numbers
+    rewritten = command_line("benchmarks.detector_psf", ["--report-only", "--out", "x"])
+    assert rewritten == "python -m benchmarks.detector_psf"
+
+
+def test_position_agreement_reads_equal_phases_as_agreeing_and_a_halved_one_by_its_ratio():
+    """Two positions' phases (benchmarks/position_agreement.py): equal ones disagree by 0 with
+    rms ratio 1; one half the other disagrees by rms(phi / 2) / rms(3 phi / 4) = 2/3, ratio 1/2,
+    over the sample the mean shows (a tenth of its largest |phase|), whatever the background."""
+    import numpy as np
+
+    from benchmarks.position_agreement import agreement
+
+    yy, xx = np.mgrid[-32:32, -32:32]
+    phase = -np.clip(1 - (xx**2 + yy**2) / 20.0**2, 0, None) * 5.0
+    same = agreement(phase, phase.copy())
+    assert same == {"disagreement": 0.0, "rms_ratio": 1.0}
+    half = agreement(phase, 0.5 * phase)
+    assert half["disagreement"] == pytest.approx(2 / 3) and half["rms_ratio"] == pytest.approx(0.5)

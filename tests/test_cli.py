@@ -32,6 +32,8 @@ def test_simulate_never_writes_over_an_existing_path(tmp_path, capsys):
         (["--positions", "0"], "position"),
         (["--grain-radius-um", "0"], "diffuser_radius_median_m"),
         (["--axis-offset-px", "1e6"], "rotation_axis_offset_px"),  # the sample never in the frame
+        (["--detector-blur-um", "-1"], "detector blur"),
+        (["--detector-halo", "1", "5"], "halo fraction"),
     ],
 )
 def test_bad_simulate_option_is_refused_in_one_line_and_writes_nothing(tmp_path, capsys, option, named):
@@ -51,6 +53,7 @@ def test_bad_simulate_option_is_refused_in_one_line_and_writes_nothing(tmp_path,
         ["--gamma", "-1"],
         ["--phase-scale", "0"],
         ["--alpha", "foo"],
+        ["--detector-halo", "2", "3"],
     ],
 )
 def test_bad_solver_option_is_refused_before_any_store_is_written(tmp_path, capsys, option):

@@ -95,6 +95,43 @@ def test_iotf_is_fourier_transform_of_ipsf():
     assert optics.iotf((8, 8), p, 0.0, 0.0) is None
 
 
+def test_detector_halo_is_the_exponentials_hankel_transform():
+    """The halo's transfer function (1 + (2 pi a q)^2)^(-3/2) is the Fourier transform of
+    exp(-r / a) / (2 pi a^2): back on the grid it is that kernel, holding its fraction of the light."""
+    n, p, a, f = 512, 0.25e-6, 2.5e-6, 0.3
+    mtf = optics.detector_transfer_function((n, n), p, 0.0, f, a, half=False, dtype=np.float64)
+    psf = np.fft.fftshift(np.fft.ifft2(mtf).real) / (p * p)
+    c = (np.arange(n) - n // 2) * p
+    r = np.hypot(*np.meshgrid(c, c))
+    kernel = f * np.exp(-r / a) / (2 * np.pi * a * a)
+    ring = (r > 2 * p) & (r < 6 * a)  # off the delta at r = 0 and the cusp's next pixels
+    np.testing.assert_allclose(psf[ring], kernel[ring], rtol=0.02, atol=1e-3 * kernel.max())
+    assert psf.sum() * p * p == pytest.approx(1.0)
+    assert psf[n // 2, n // 2] * p * p == pytest.approx(1 - f, abs=0.01)
+
+
+def test_a_gaussian_detector_blur_is_the_iotf_of_longer_coherence_lengths():
+    """Eq. (IOTF) times a Gaussian of FWHM w is Eq. (IOTF) at sqrt(x^2 + 4 pi sigma^2): in PWF's
+    model the detector's Gaussian blur and the source's are one, so a calibration reads both."""
+    shape, p, w = (64, 96), 0.65e-6, 1.5e-6
+    both = optics.iotf(shape, p, 3.47e-6, 4.31e-6, dtype=np.float64) * optics.detector_transfer_function(
+        shape, p, w, dtype=np.float64
+    )
+    x, y = optics.blurred_coherence_length_m(3.47e-6, w), optics.blurred_coherence_length_m(4.31e-6, w)
+    np.testing.assert_allclose(both, optics.iotf(shape, p, x, y, dtype=np.float64), rtol=1e-12)
+    assert optics.detector_transfer_function(shape, p) is None  # no blur costs nothing
+    # the model's filter without a halo is Eq. (IOTF) itself, bit for bit; at full coherence none
+    np.testing.assert_array_equal(
+        optics.intensity_transfer_function(shape, p, 3.47e-6, 4.31e-6), optics.iotf(shape, p, 3.47e-6, 4.31e-6)
+    )
+    assert optics.intensity_transfer_function(shape, p, 0.0, 0.0) is None
+    halo = optics.intensity_transfer_function(shape, p, 0.0, 0.0, 0.2, 5e-6, dtype=np.float64)
+    np.testing.assert_array_equal(halo, optics.detector_transfer_function(shape, p, 0.0, 0.2, 5e-6, dtype=np.float64))
+    for bad in ((-1e-6, 0.0, 0.0), (0.0, 1.0, 1e-6), (0.0, 0.1, -1e-6)):
+        with pytest.raises(ValueError, match="detector blur"):
+            optics.detector_transfer_function(shape, p, *bad)
+
+
 def test_regularization_window_and_preconditioner():
     shape = (32, 32)
     g2 = optics.regularization_window(shape, 1e-6, 3e-6, 3e-6, gamma=1.0, half=False, dtype=np.float64)

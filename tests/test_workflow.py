@@ -729,6 +729,34 @@ def test_simulated_dark_field_blurs_the_speckle_behind_the_sample_only(tmp_path)
     assert pb[..., middle].mean() == pytest.approx(pa[..., middle].mean(), rel=0.02)
 
 
+def test_simulated_detector_blur_is_recorded_and_keeps_the_light(tmp_path):
+    """``simulate --detector-blur-um --detector-halo``: the detector's PSF lowers the speckle's
+    contrast in every frame and keeps its light; the truth is recorded; none named is none. PWF
+    told the halo (``detector_halo_*``) fits the scan's diffuser with it and records it."""
+    args = ["--preset", "demo", "--shape", "48", "96", "--angles", "2", "--positions", "1", "--corrected"]
+    args += ["--seed", "4"]
+    assert cli.main(["simulate", str(tmp_path / "a.zarr"), *args]) == 0
+    assert cli.main(["simulate", str(tmp_path / "z.zarr"), *args, "--detector-blur-um", "0"]) == 0
+    blur = ["--detector-blur-um", "1.5", "--detector-halo", "0.2", "5"]
+    assert cli.main(["simulate", str(tmp_path / "b.zarr"), *args, *blur]) == 0
+    a, z, b = (xr.open_zarr(tmp_path / f"{n}.zarr") for n in "azb")
+    np.testing.assert_array_equal(a.reference.values, z.reference.values)
+    assert b.attrs["simulation_detector_blur_fwhm_m"] == pytest.approx(1.5e-6)
+    assert b.attrs["simulation_detector_halo_fraction"] == 0.2
+    assert b.attrs["simulation_detector_halo_radius_m"] == pytest.approx(5e-6)
+    for frames in ("reference", "projections"):
+        pa, pb = a[frames].values, b[frames].values
+        assert pb.std() < 0.9 * pa.std()
+        assert pb.mean() == pytest.approx(pa.mean(), rel=0.01)
+    # PWF told the halo: the scan's diffuser is estimated with it, and the store records it
+    told = {"detector_halo_fraction": 0.2, "detector_halo_radius_m": 5e-6}
+    workflow.retrieve_scan(tmp_path / "b.zarr", tmp_path / "plain.zarr", **FAST)
+    workflow.retrieve_scan(tmp_path / "b.zarr", tmp_path / "told.zarr", **told, **FAST)
+    plain, with_halo = xr.open_zarr(tmp_path / "plain.zarr"), xr.open_zarr(tmp_path / "told.zarr")
+    assert with_halo.attrs["detector_halo_fraction"] == 0.2 and "detector_halo_fraction" not in plain.attrs
+    assert not np.allclose(with_halo["diffuser"].values, plain["diffuser"].values, equal_nan=True)
+
+
 def test_discrepancy_alpha_is_chosen_once_recorded_and_kept_on_resume(tiny_scan, tmp_path, capsys):
     """``--alpha discrepancy``: Im(alpha) chosen on one projection (position 0, middle angle),
     used for every projection, recorded with the rungs tried; a resumed run keeps it."""

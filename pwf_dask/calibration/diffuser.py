@@ -35,6 +35,8 @@ def diffuser_transmission(
     pad: int = 0,
     shape: tuple[int, int] | None = None,
     nsr: float | None = None,
+    detector_halo_fraction: float = 0.0,
+    detector_halo_radius_m: float = 0.0,
     phase_screen_iter: int = 0,
     diffuser_model: str = "zero-phase",
     beta_over_delta: float | None = None,
@@ -55,7 +57,9 @@ def diffuser_transmission(
     ``upstream_m`` and the reference is the diffuser seen over ``upstream_m`` + L2. The single
     material is fitted over that whole distance and t_r is its field at the sample plane. The
     zero-phase estimate does not depend on it (back-propagating over L2 + d and forward over
-    d is back-propagating over L2).
+    d is back-propagating over L2). ``detector_halo_fraction`` and ``detector_halo_radius_m``:
+    the detector's halo, deconvolved or fitted beside the IOTF
+    (:func:`pwf_dask.physics.optics.intensity_transfer_function`); none by default.
     """
     if diffuser_model not in DIFFUSER_MODELS:
         raise ValueError(f"unknown diffuser_model {diffuser_model!r}: choose one of {', '.join(DIFFUSER_MODELS)}")
@@ -76,6 +80,8 @@ def diffuser_transmission(
             shape=shape,
             nsr=nsr,
             iterations=refine_iter,
+            detector_halo_fraction=detector_halo_fraction,
+            detector_halo_radius_m=detector_halo_radius_m,
             fft=fft,
         ).transmission
         # the diffuser's field at the sample plane (0 m: the same array, nothing computed)
@@ -84,7 +90,16 @@ def diffuser_transmission(
     fft = fft or FFT.for_module(xp)
     ref, shape = _padded_reference(reference, pad, shape, xp)
     spec = fft.rfft2(ref)
-    h = optics.iotf(shape, pixel_size_m, coherence_length_x_m, coherence_length_y_m, xp, np.float64)
+    h = optics.intensity_transfer_function(
+        shape,
+        pixel_size_m,
+        coherence_length_x_m,
+        coherence_length_y_m,
+        detector_halo_fraction,
+        detector_halo_radius_m,
+        xp,
+        np.float64,
+    )
     if h is not None:
         v, u = optics.frequency_grid(shape, 1.0, half=True)
         r2 = xp.asarray(u * u + v * v)
@@ -186,6 +201,8 @@ def ctf_phase_delay(
     pad: int = 0,
     shape: tuple[int, int] | None = None,
     nsr: float | None = None,
+    detector_halo_fraction: float = 0.0,
+    detector_halo_radius_m: float = 0.0,
     fft: FFT | None = None,
 ):
     """Linear (contrast transfer function) estimate of a single-material diffuser's phase delay.
@@ -202,7 +219,16 @@ def ctf_phase_delay(
     v, u = optics.frequency_grid(shape, pixel_size_m, half=True)
     chi = np.pi * wavelength * diffuser_detector_distance_m * (u * u + v * v)
     transfer = 2.0 * (np.sin(chi) + beta_over_delta * np.cos(chi))
-    h = optics.iotf(shape, pixel_size_m, coherence_length_x_m, coherence_length_y_m, np, np.float64)
+    h = optics.intensity_transfer_function(
+        shape,
+        pixel_size_m,
+        coherence_length_x_m,
+        coherence_length_y_m,
+        detector_halo_fraction,
+        detector_halo_radius_m,
+        np,
+        np.float64,
+    )
     if h is not None:
         transfer = transfer * h
     transfer = xp.asarray(transfer)
@@ -284,6 +310,8 @@ def single_material_diffuser(
     pad: int = 0,
     shape: tuple[int, int] | None = None,
     nsr: float | None = None,
+    detector_halo_fraction: float = 0.0,
+    detector_halo_radius_m: float = 0.0,
     iterations: int = REFINE_ITER,
     fft: FFT | None = None,
 ) -> DiffuserEstimate:
@@ -315,13 +343,24 @@ def single_material_diffuser(
         coherence_length_y_m=coherence_length_y_m,
         shape=shape,
         nsr=nsr,
+        detector_halo_fraction=detector_halo_fraction,
+        detector_halo_radius_m=detector_halo_radius_m,
         fft=fft,
     )
     kernel = optics.angular_spectrum_kernel(
         shape, pixel_size_m, wavelength, diffuser_detector_distance_m, xp, np.complex128
     )
     kernel_conj = xp.conj(kernel)
-    h = optics.iotf(shape, pixel_size_m, coherence_length_x_m, coherence_length_y_m, xp, np.float64)
+    h = optics.intensity_transfer_function(
+        shape,
+        pixel_size_m,
+        coherence_length_x_m,
+        coherence_length_y_m,
+        detector_halo_fraction,
+        detector_halo_radius_m,
+        xp,
+        np.float64,
+    )
     mask = None
     if (ny, nx) != tuple(shape):
         mask = xp.zeros(shape)

@@ -7,6 +7,11 @@ Every filter of the paper lives here, by the paper's name:
 * :func:`iotf` - the intensity optical transfer function, Eq. (IOTF);
 * :func:`pixel_transfer_function` - detector pixel integration (a box), used when the model
   forms intensities on a grid finer than the detector;
+* :func:`detector_transfer_function` - the detector's own blur (scintillator, microscope), not
+  in the paper's model: simulated scenes carry it, and a Gaussian one is the IOTF's
+  (:func:`blurred_coherence_length_m`);
+* :func:`intensity_transfer_function` - what the model applies to |v|^2: the IOTF, times the
+  detector's halo where the user gives one;
 * :func:`sample_transfer_function` and :func:`regularization_window` - Eqs. (STF), (regWin);
 * :func:`preconditioner` - the inverse-Laplacian filter 1/(u^2+v^2), Eq. (precondFilter).
 
@@ -169,6 +174,89 @@ def pixel_transfer_function(
     """Transfer function sinc(u p) sinc(v p) of integration over a square detector pixel p."""
     v, u = frequency_grid(shape, grid_spacing_m, half=half)
     return _to(xp, np.sinc(u * detector_pixel_m) * np.sinc(v * detector_pixel_m), dtype)
+
+
+#: FWHM of a Gaussian over its sigma, 2 sqrt(2 ln 2)
+FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+
+
+def check_detector_blur(blur_fwhm_m: float, halo_fraction: float, halo_radius_m: float) -> None:
+    """One line for a detector blur that is not one: a negative width, a halo fraction outside [0, 1)."""
+    if not (blur_fwhm_m >= 0 and 0 <= halo_fraction < 1 and halo_radius_m >= 0):
+        raise ValueError(
+            "detector blur: need a FWHM >= 0, a halo fraction (detector_halo_fraction) in [0, 1) and a halo "
+            f"radius (detector_halo_radius_m) >= 0, got {blur_fwhm_m}, {halo_fraction}, {halo_radius_m}"
+        )
+
+
+def detector_transfer_function(
+    shape: tuple[int, int],
+    grid_spacing_m: float,
+    blur_fwhm_m: float = 0.0,
+    halo_fraction: float = 0.0,
+    halo_radius_m: float = 0.0,
+    xp: ModuleType = np,
+    dtype=np.float32,
+    half: bool = True,
+):
+    """Transfer function of the detector's point-spread function, which blurs the intensity
+    before the pixels integrate it (the scintillator's depth of light emission, the
+    microscope's aperture, scattered scintillation light).
+
+    The PSF is a Gaussian core of FWHM ``blur_fwhm_m`` convolved with (1 - f) delta + f h,
+    h(r) = exp(-r / a) / (2 pi a^2) a halo of 1/e radius a = ``halo_radius_m`` holding the
+    fraction f = ``halo_fraction`` of the light. Its transfer function, with q = |(u, v)|:
+    exp(-2 pi^2 sigma^2 q^2) [(1 - f) + f (1 + (2 pi a q)^2)^(-3/2)] (the exponential's Hankel
+    transform). Not a term of the paper: the reference's calibration takes a Gaussian core
+    into the coherence lengths (:func:`blurred_coherence_length_m`); a halo is outside the
+    model. Returns None when there is no blur, so that it costs nothing.
+    """
+    check_detector_blur(blur_fwhm_m, halo_fraction, halo_radius_m)
+    halo = halo_fraction > 0 and halo_radius_m > 0
+    if blur_fwhm_m == 0 and not halo:
+        return None
+    v, u = frequency_grid(shape, grid_spacing_m, half=half)
+    q2 = u * u + v * v
+    sigma = blur_fwhm_m / FWHM_PER_SIGMA
+    transfer = np.exp(-2.0 * np.pi**2 * sigma**2 * q2)
+    if halo:
+        transfer *= (1.0 - halo_fraction) + halo_fraction * (1.0 + (2.0 * np.pi * halo_radius_m) ** 2 * q2) ** -1.5
+    return _to(xp, transfer, dtype)
+
+
+def blurred_coherence_length_m(coherence_length_m: float, blur_fwhm_m: float) -> float:
+    """The coherence length a Gaussian detector blur of FWHM ``blur_fwhm_m`` adds up to.
+
+    The IOTF exp(-pi/2 u^2 x^2), Eq. (IOTF), times the blur's exp(-2 pi^2 sigma^2 u^2) is the
+    IOTF of sqrt(x^2 + 4 pi sigma^2): the two blurs are one in PWF's forward model, Eq.
+    (forwardModel), and a length calibrated from the reference includes the detector's.
+    """
+    sigma = blur_fwhm_m / FWHM_PER_SIGMA
+    return math.sqrt(coherence_length_m**2 + 4.0 * math.pi * sigma**2)
+
+
+def intensity_transfer_function(
+    shape: tuple[int, int],
+    pixel_size_m: float,
+    coherence_length_x_m: float,
+    coherence_length_y_m: float,
+    detector_halo_fraction: float = 0.0,
+    detector_halo_radius_m: float = 0.0,
+    xp: ModuleType = np,
+    dtype=np.float32,
+    half: bool = True,
+):
+    """The filter PWF's forward model applies to the intensity |v|^2, Eq. (forwardModel): the
+    IOTF, Eq. (IOTF), times the detector's halo (:func:`detector_transfer_function` with no
+    Gaussian core: the calibrated lengths carry the core) where one is given. Without a halo it
+    is :func:`iotf` itself, and None at full coherence."""
+    otf = iotf(shape, pixel_size_m, coherence_length_x_m, coherence_length_y_m, xp, dtype, half)
+    halo = detector_transfer_function(
+        shape, pixel_size_m, 0.0, detector_halo_fraction, detector_halo_radius_m, xp, dtype, half
+    )
+    if halo is None:
+        return otf
+    return halo if otf is None else otf * halo
 
 
 def sample_transfer_function(

@@ -26,7 +26,7 @@ from pwf_dask.baselines.tracking import MIN_POSITIONS
 from pwf_dask.options import DEFAULTS, check_option_names
 from pwf_dask.physics.detector import check_threshold, repair_outliers, saturated_pixels
 from pwf_dask.physics.geometry import Geometry
-from pwf_dask.physics.optics import wavelength_m
+from pwf_dask.physics.optics import check_detector_blur, wavelength_m
 from pwf_dask.pipeline import estimate
 from pwf_dask.pipeline.cluster import Runner, check_scheduler, worker_fft_threads
 from pwf_dask.pwf.model import check_sample_field_grid
@@ -103,6 +103,8 @@ _DIFFUSER_OPTIONS = (
     "diffuser_refine_iter",
     "phase_screen_iter",
     "diffuser_upstream_m",
+    "detector_halo_fraction",
+    "detector_halo_radius_m",
 )
 #: the reconstruction store's array of the fitted diffusers (position, y, x, re/im), float32
 DIFFUSER_ARRAY = "diffuser"
@@ -621,6 +623,11 @@ def _checked_scan_options(
     if "field_upsample" in options:
         options["field_upsample"] = check_field_upsample(options["field_upsample"])
     check_sample_field_grid(options.get("sample_field_grid", DEFAULTS.sample_field_grid))
+    check_detector_blur(
+        0.0,
+        options.get("detector_halo_fraction", DEFAULTS.detector_halo_fraction),
+        options.get("detector_halo_radius_m", DEFAULTS.detector_halo_radius_m),
+    )
     return angle_chain, alpha_c
 
 

@@ -158,6 +158,8 @@ def build_model(
     coherence_length_x_m: float,
     coherence_length_y_m: float,
     pixel_integration: bool = False,
+    detector_halo_fraction: float = 0.0,
+    detector_halo_radius_m: float = 0.0,
     gamma: float = 1.0,
     alpha: complex = DEFAULT_ALPHA,
     use_preconditioner: bool = True,
@@ -199,6 +201,11 @@ def build_model(
 
     ``bad_pixels`` (frame-shaped, True = not a measurement, e.g. a zinger) are left out of
     the data term, as the padding margin is: the residual is masked there.
+
+    ``detector_halo_fraction`` and ``detector_halo_radius_m``: the detector spreads that fraction
+    of the light over an exponential halo of that 1/e radius (scattered scintillation light), a
+    filter beside the IOTF (:func:`pwf_dask.physics.optics.intensity_transfer_function`); not in
+    the paper's model, and none by default.
     """
     from pwf_dask.backend import get_array_module
 
@@ -225,7 +232,16 @@ def build_model(
     if sample_diffuser_distance_m != 0:
         k1 = optics.angular_spectrum_kernel(field_shape, field_pixel_m, wavelength, sample_diffuser_distance_m, xp, cdt)
     k2 = optics.angular_spectrum_kernel(field_shape, field_pixel_m, wavelength, diffuser_detector_distance_m, xp, cdt)
-    otf = optics.iotf(shape, pixel_size_m, coherence_length_x_m, coherence_length_y_m, xp, rdt)
+    otf = optics.intensity_transfer_function(
+        shape,
+        pixel_size_m,
+        coherence_length_x_m,
+        coherence_length_y_m,
+        detector_halo_fraction,
+        detector_halo_radius_m,
+        xp,
+        rdt,
+    )
     if pixel_integration:
         pix = optics.pixel_transfer_function(shape, pixel_size_m, pixel_size_m, xp, rdt)
         otf = pix if otf is None else otf * pix

@@ -57,6 +57,8 @@ def simulate_scan(
     diffuser_radius_median_m: float | None = None,
     diffuser_grain_shape: str = "spheres",
     beads: bool = True,
+    detector_blur_fwhm_m: float = 0.0,
+    detector_halo: tuple[float, float] = (0.0, 0.0),
     progress: bool = True,
 ) -> str:
     """Simulate a whole scan into a Zarr store (docs/scan-format.md §1) and return its path.
@@ -78,8 +80,10 @@ def simulate_scan(
     :func:`dark_field_blur`). The diffuser is four layers of ``diffuser_grit`` sandpaper (the
     paper's P3000 by default), or grains of ``diffuser_radius_median_m``, of
     ``diffuser_grain_shape`` (:mod:`pwf_dask.physics.diffusers`). ``beads=False`` leaves the
-    glass beads out: the cellulose cylinder alone, a sample of one material. The phantom, the
-    diffuser and the truth are recorded in the attributes.
+    glass beads out: the cellulose cylinder alone, a sample of one material.
+    ``detector_blur_fwhm_m`` and ``detector_halo`` = (fraction, 1/e radius in m): the detector's
+    point-spread function, a Gaussian core and an exponential halo (:class:`SpeckleSetup`). The
+    phantom, the diffuser and the truth are recorded in the attributes.
     """
     from pwf_dask.stores import scan_io
 
@@ -99,6 +103,9 @@ def simulate_scan(
         diffuser_grit=diffuser_grit,
         diffuser_radius_median_m=diffuser_radius_median_m,
         diffuser_grain_shape=diffuser_grain_shape,
+        detector_blur_fwhm_m=float(detector_blur_fwhm_m),
+        detector_halo_fraction=float(detector_halo[0]),
+        detector_halo_radius_m=float(detector_halo[1]),
     )
     if diffuser_upstream_m:
         setup = replace(setup, sample_diffuser_distance_m=0.0, diffuser_upstream_m=diffuser_upstream_m)
@@ -182,6 +189,9 @@ def _simulation_attrs(setup: SpeckleSetup, preset, seed, zingers, dark_field_px,
         "simulation_diffuser_grain_shape": setup.diffuser_grain_shape,
         "simulation_diffuser_drift_y_px": float(drift_px[0]),
         "simulation_diffuser_drift_x_px": float(drift_px[1]),
+        "simulation_detector_blur_fwhm_m": setup.detector_blur_fwhm_m,
+        "simulation_detector_halo_fraction": setup.detector_halo_fraction,
+        "simulation_detector_halo_radius_m": setup.detector_halo_radius_m,
         "simulation_phantom": phantom_to_json(phantom),
     }
 

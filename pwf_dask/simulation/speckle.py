@@ -12,7 +12,9 @@ by ``margin_px`` detector pixels each side (so periodic wrap-around never reache
    (or, with ``diffuser_upstream_m``, the diffuser before the sample: diffuser, free space,
    sample, the geometry the algorithms see as L1 = 0);
 4. propagation over L2, intensity, partial-coherence blur by the IPSF, Eq. (IPSF);
-5. detector pixel integration (block mean), Poisson noise at ``photons`` per pixel.
+5. optionally the detector's own blur (``detector_blur_fwhm_m``, ``detector_halo_fraction``:
+   :func:`pwf_dask.physics.optics.detector_transfer_function`), which the paper's model lacks;
+6. detector pixel integration (block mean), Poisson noise at ``photons`` per pixel.
 
 The reference is the same without the sample (independent noise). Ground truth phase and
 attenuation are the pixel means of the fine-grid line integrals.
@@ -95,10 +97,25 @@ class SpeckleSetup:
     #: algorithms then see L1 = 0 and L2 = the sample-detector distance
     #: (``diffuser_detector_distance_m``); the reference is the diffuser over both distances.
     diffuser_upstream_m: float = 0.0
+    #: the detector's point-spread function (scintillator, microscope), on the intensity before
+    #: the pixels: a Gaussian core of this FWHM, convolved with a halo holding
+    #: ``detector_halo_fraction`` of the light over an exponential of 1/e radius
+    #: ``detector_halo_radius_m`` (:func:`pwf_dask.physics.optics.detector_transfer_function`)
+    detector_blur_fwhm_m: float = 0.0
+    detector_halo_fraction: float = 0.0
+    detector_halo_radius_m: float = 0.0
 
     def geometry(self) -> dict:
         """The keyword arguments :func:`pwf_dask.retrieve_projection` needs for this set-up."""
         return _geometry(self)
+
+    def blurred_coherence_lengths_m(self) -> tuple[float, float]:
+        """(x, y) coherence lengths of the source and the detector's Gaussian core together: what
+        a calibration from the reference should read (a halo aside)."""
+        return (
+            optics.blurred_coherence_length_m(self.coherence_length_x_m, self.detector_blur_fwhm_m),
+            optics.blurred_coherence_length_m(self.coherence_length_y_m, self.detector_blur_fwhm_m),
+        )
 
     def __post_init__(self):
         if self.diffuser_radius_median_m is None:
@@ -115,6 +132,7 @@ class SpeckleSetup:
                 "a diffuser upstream of the sample needs sample_diffuser_distance_m = 0 (L1 = 0), got "
                 f"{self.sample_diffuser_distance_m}"
             )
+        optics.check_detector_blur(self.detector_blur_fwhm_m, self.detector_halo_fraction, self.detector_halo_radius_m)
 
     def fine_grid(self):
         s = self.oversample
@@ -208,6 +226,15 @@ class SpeckleSimulator:
         self.iotf = optics.iotf(
             self.fine_shape, self.spacing, st.coherence_length_x_m, st.coherence_length_y_m, np, np.float64
         )
+        self.detector_transfer = optics.detector_transfer_function(
+            self.fine_shape,
+            self.spacing,
+            st.detector_blur_fwhm_m,
+            st.detector_halo_fraction,
+            st.detector_halo_radius_m,
+            np,
+            np.float64,
+        )
 
     def diffuser(self, shift_px: tuple[float, float] = (0, 0)) -> np.ndarray:
         """The diffuser's transmission moved laterally by ``shift_px`` (dy, dx) detector pixels:
@@ -263,6 +290,9 @@ class SpeckleSimulator:
             inten = fft.irfft2(fft.rfft2(inten) * self.iotf, s=self.fine_shape)
         if dark_field_sigma_px is not None:
             inten = dark_field_blur(inten, dark_field_sigma_px * self.setup.oversample)
+        if self.detector_transfer is not None:
+            # the scintillator sees the X-ray intensity as the sample and source left it
+            inten = fft.irfft2(fft.rfft2(inten) * self.detector_transfer, s=self.fine_shape)
         return self._bin(inten)
 
     def dark_field_sigma_px(self, psi: np.ndarray, dark_field_px: float) -> np.ndarray | None:
