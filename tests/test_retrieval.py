@@ -364,13 +364,14 @@ def test_cupy_matches_numpy(cupy, small_scene):
         {"initial": "umpa", "field_upsample": 2, "precision": "double"},
         {"single_material": True, "sample_material": "cellulose"},
         {"diffuser_beta_over_delta": 1e-4},  # "auto" gives zero phase and probes both models
+        {"detector_halo_fraction": 0.3, "detector_halo_radius_m": 3e-6},
     ],
-    ids=["calibrated-drift", "umpa-start-fine-grid-double", "single-material", "diffuser-probe"],
+    ids=["calibrated-drift", "umpa-start-fine-grid-double", "single-material", "diffuser-probe", "detector-halo"],
 )
 def test_cupy_options_match_numpy(cupy, options):
     """The option paths on CuPy: the Siegert calibration, drift estimate, UMPA start,
-    field on a finer grid, double precision, the single-material prior (a 96 x 96 frame, 30
-    iterations)."""
+    field on a finer grid, double precision, the single-material prior, the detector's halo in
+    the model and the diffuser fit (a 96 x 96 frame, 30 iterations)."""
     sim = simulate_projection(SpeckleSetup(shape=(96, 96), photons=1e4), seed=2)
     kw = kwargs(sim, max_iter=30, tol=0, **options)
     cpu = retrieve_projection(sim.sample, sim.reference, **kw)
