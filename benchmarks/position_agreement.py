@@ -30,15 +30,16 @@ import numpy as np
 from benchmarks.random_scenes import _method_options, draw_scene
 from benchmarks.reporting import command_line, device_name, read_rows_csv, write_rows_csv
 from benchmarks.stability import PHASE_ERROR_THRESHOLD, errors, sensitivity_columns
+from pwf_dask.calibration import SensitivityLimits, position_disagreement
+from pwf_dask.calibration.sensitivity import DISAGREEMENT_SAMPLE_FRACTION
 from pwf_dask.retrieval import retrieve_projection
 from pwf_dask.simulation import SpeckleSimulator
 
-#: the sample's pixels by the two phases' own mean: above this fraction of its largest |phase|
-SAMPLE_FRACTION = 0.1
 #: disagreement limits the report counts each class's scenes above
 LIMITS = (0.2, 0.25, 0.3, 0.35)
-#: the limit chosen on scenes 0-79: above the largest disagreement (0.328) of a pair where both hold
-CHOSEN_LIMIT = 0.35
+#: the limit chosen on scenes 0-79, above the largest disagreement (0.328) of a pair where both
+#: hold: the scan workflow's (SensitivityLimits.max_position_disagreement)
+CHOSEN_LIMIT = SensitivityLimits().max_position_disagreement
 #: (first scene, end, name) of the sets the report keeps apart
 SETS = ((0, 80, "0-79 (limit chosen here)"), (80, 120, "80-119 (held out)"), (120, 160, "120-159 (held out)"))
 
@@ -54,17 +55,14 @@ def second_position(setup, sim, seed: int):
 
 
 def agreement(phase_a: np.ndarray, phase_b: np.ndarray) -> dict:
-    """Truth-free: the two retrievals' disagreement over the sample their mean shows, and the
-    ratio of their rms phases there (the smaller over the larger)."""
+    """Truth-free: the two retrievals' disagreement (:func:`pwf_dask.calibration.position_disagreement`,
+    the scan workflow's measure), and the ratio of their rms phases over the sample their mean
+    shows (the smaller over the larger)."""
     a, b = np.asarray(phase_a, np.float64), np.asarray(phase_b, np.float64)
     mean = 0.5 * (a + b)
-    inside = np.abs(mean) > SAMPLE_FRACTION * np.abs(mean).max()
-    rms_mean = np.sqrt(np.mean(mean[inside] ** 2))
+    inside = np.abs(mean) > DISAGREEMENT_SAMPLE_FRACTION * np.abs(mean).max()
     ra, rb = np.sqrt(np.mean(a[inside] ** 2)), np.sqrt(np.mean(b[inside] ** 2))
-    return {
-        "disagreement": float(np.sqrt(np.mean((a - b)[inside] ** 2)) / rms_mean),
-        "rms_ratio": float(min(ra, rb) / max(ra, rb)),
-    }
+    return {"disagreement": position_disagreement(np.stack([a, b]))[0], "rms_ratio": float(min(ra, rb) / max(ra, rb))}
 
 
 def scene_row(i: int) -> dict:
@@ -121,7 +119,8 @@ def write_markdown(rows: list[dict], path: str, command: str) -> None:
         f"{PHASE_ERROR_THRESHOLD};",
         "flagged: either position's own warning (speckle shift, visibility, sample misfit).",
         "Disagreement: rms of the two phases' difference over the rms of their mean, where the mean's",
-        f"|phase| exceeds {SAMPLE_FRACTION} of its largest; rms ratio: the smaller phase's rms over the larger's.",
+        f"|phase| exceeds {DISAGREEMENT_SAMPLE_FRACTION} of its largest; rms ratio: the smaller phase's rms",
+        "over the larger's.",
         f"Refused by the calibration: {len(rows) - len(done)} scenes.",
         "",
         "| class | scenes | disagreement min / median / max | rms ratio min / median / max "

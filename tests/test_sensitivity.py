@@ -6,7 +6,14 @@ import pytest
 from scipy import ndimage
 
 from pwf_dask import retrieve_projection
-from pwf_dask.calibration import SensitivityLimits, sensitivity, speckle_grain_px, speckle_shift_px, speckle_visibility
+from pwf_dask.calibration import (
+    SensitivityLimits,
+    position_disagreement,
+    sensitivity,
+    speckle_grain_px,
+    speckle_shift_px,
+    speckle_visibility,
+)
 from pwf_dask.pipeline.workflow import sensitivity_warning
 from pwf_dask.simulation import SpeckleSetup, simulate_projection
 
@@ -105,6 +112,27 @@ def test_a_scans_summary_counts_the_projections_below_each_limit():
     line = sensitivity_warning(np.full((2, 3), 0.1), np.full((2, 3), 0.2), misfit)
     assert line.startswith("the fit leaves over 1.3 times the background's misfit inside the sample on 2 of 5")
     assert "(the largest 2.50)" in line
+    # K = 2 positions: an angle counts once, by its largest; NaN (not retrieved) not at all
+    apart = np.array([[0.1, 0.5, np.nan], [0.1, 0.5, np.nan]])
+    line = sensitivity_warning(np.full((2, 3), 0.1), np.full((2, 3), 0.2), None, apart)
+    assert line.startswith("the diffuser positions' phases disagree by over 0.35 of their rms on 1 of 2 angles")
+    assert sensitivity_warning(np.full((2, 3), 0.1), np.full((2, 3), 0.2), None, np.full((2, 3), 0.2)) is None
+
+
+def test_position_disagreement_reads_a_positions_difference_over_their_mean():
+    """Two positions: rms(phi_0 - phi_1) / rms of their mean over the sample the mean shows,
+    the same for both; equal phases 0; one of K = 3 off by a scale reads furthest; a K of 1 or
+    no phase at all has no disagreement."""
+    yy, xx = np.mgrid[-32:32, -32:32]
+    phase = -np.clip(1 - (xx**2 + yy**2) / 20.0**2, 0, None) * 5.0
+    assert position_disagreement(np.stack([phase, phase])) == [0.0, 0.0]
+    # 0.5 phi against phi: rms(phi / 2) / rms(3 phi / 4) = 2/3 for both
+    assert position_disagreement(np.stack([phase, 0.5 * phase])) == pytest.approx([2 / 3, 2 / 3])
+    three = position_disagreement(np.stack([phase, phase, 0.4 * phase]))
+    assert three[2] > three[0] == pytest.approx(three[1])
+    assert np.isnan(position_disagreement(np.zeros((2, 8, 8)))).all()
+    with pytest.raises(ValueError, match="K >= 2"):
+        position_disagreement(phase[None])
 
 
 @pytest.mark.gpu

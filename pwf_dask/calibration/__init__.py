@@ -35,6 +35,7 @@ from pwf_dask.calibration.drift import shift_transmission, speckle_drift_px, uns
 from pwf_dask.calibration.sensitivity import (
     Sensitivity,
     SensitivityLimits,
+    position_disagreement,
     sample_misfit,
     speckle_grain_px,
     speckle_shift_px,
@@ -58,6 +59,7 @@ __all__ = [
     "noise_to_signal",
     "photon_noise_pct",
     "refine_phase_screen",
+    "position_disagreement",
     "sample_misfit",
     "shift_transmission",
     "single_material_diffuser",

@@ -56,11 +56,14 @@ class SensitivityLimits:
     the speckle grain. ``min_visibility``: the reference's rms over its mean, photon noise
     removed. ``max_sample_misfit``: :func:`sample_misfit`, the sample's misfit over the
     background's (above it the model does not fit the sample; benchmarks/results/sensitivity_check.md).
+    ``max_position_disagreement``: :func:`position_disagreement` of a scan's K >= 2 diffuser
+    positions (benchmarks/results/position_agreement.md: above every pair of 37 where both hold).
     """
 
     min_shift_over_grain: float = 0.02
     min_visibility: float = 0.05
     max_sample_misfit: float = 1.3
+    max_position_disagreement: float = 0.35
 
 
 @dataclass(frozen=True)
@@ -189,6 +192,36 @@ def sample_misfit(residual, intensity, background, excluded=None) -> float:
     if int(bg.sum()) < MIN_SAMPLE_PIXELS or int(sample.sum()) < MIN_SAMPLE_PIXELS:
         return float("nan")
     return float(xp.sqrt(weighted[sample].mean() / weighted[bg].mean()))
+
+
+#: the sample's pixels by the positions' mean phase: above this fraction of its largest |phase|
+DISAGREEMENT_SAMPLE_FRACTION = 0.1
+
+
+def position_disagreement(phases) -> list[float]:
+    """How far K >= 2 diffuser positions' phases of one projection disagree (not in the paper).
+
+    ``phases``: (K, ny, nx), each position's retrieved phase (independent speckle, the same
+    sample and angle). For each position, the rms of its phase less the mean of the others'
+    over the rms of all K's mean, where that mean's |phase| exceeds
+    :data:`DISAGREEMENT_SAMPLE_FRACTION` of its largest; for K = 2 both read
+    rms(phi_0 - phi_1) / rms((phi_0 + phi_1) / 2). A phase that is what the data tell agrees
+    across diffusers; one the diffuser draw chose does not (session 88, random geometries 0-119:
+    pairs where both hold 0.03-0.33, failures no other check flags 0.05-1.7; docs/validation.md,
+    "What the data carry"). NaN where the mean has no phase.
+    """
+    xp = get_array_module(phases)
+    a = xp.asarray(phases, dtype=xp.float64)
+    k = a.shape[0]
+    if a.ndim != 3 or k < 2:
+        raise ValueError(f"position_disagreement needs (K >= 2, ny, nx) phases, got shape {tuple(a.shape)}")
+    total = a.sum(axis=0)
+    mean = total / k
+    inside = xp.abs(mean) > DISAGREEMENT_SAMPLE_FRACTION * float(xp.abs(mean).max())
+    norm = float(xp.sqrt(xp.mean(mean[inside] ** 2))) if bool(inside.any()) else 0.0
+    if not norm > 0:
+        return [float("nan")] * k
+    return [float(xp.sqrt(xp.mean((a[p] - (total - a[p]) / (k - 1))[inside] ** 2))) / norm for p in range(k)]
 
 
 def assess(

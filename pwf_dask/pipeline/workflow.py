@@ -778,17 +778,51 @@ def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, co
         a["retrieval_wall_s_total"] = float(a.get("retrieval_wall_s_total", 0.0)) + wall
         a["retrieval_task_s_total"] = float(a.get("retrieval_task_s_total", 0.0)) + float(sum(r[5] for r in results))
         a["retrieval_tasks_timed"] = int(a.get("retrieval_tasks_timed", 0)) + len(results)
+    if opts["method"] == "pwf" and info.n_positions >= 2 and (results or POSITION_DISAGREEMENT not in grp):
+        _record_position_disagreement(runner, recon_path, grp)
     _warn_sensitivity(grp)
     scan_io.consolidate(recon_path)
     return {"computed": len(results), "wall_s": wall, "coherence": coherence, "tasks": results}
 
 
+#: the store's variable of :func:`pwf_dask.calibration.position_disagreement`, (position, angle)
+POSITION_DISAGREEMENT = "position_disagreement"
+
+
+def _disagreement_task(angles: list[int], *, recon_path: str) -> list[list[float]]:
+    """:func:`pwf_dask.calibration.position_disagreement` of each angle whose every position is
+    retrieved; NaN for each position of an angle that is not."""
+    import zarr
+
+    from pwf_dask.calibration import position_disagreement
+
+    g = zarr.open_group(recon_path, mode="r", use_consolidated=False)
+    done = g["iterations"][...]
+    nan = [float("nan")] * done.shape[0]
+    return [position_disagreement(g["phase"][:, a]) if (done[:, a] >= 0).all() else nan for a in angles]
+
+
+def _record_position_disagreement(runner, recon_path: str, grp) -> None:
+    """A scan of K >= 2 diffuser positions retrieves every projection K times from independent
+    speckle: their disagreement per (position, angle), in batches of 16 angles on the scheduler
+    (one read of the phases), stored whole (docs/validation.md, 'What the data carry')."""
+    npos, nang = grp["iterations"].shape
+    batches = [list(range(i, min(i + 16, nang))) for i in range(0, nang, 16)]
+    found = runner.map(_disagreement_task, batches, label="agreement", unit="angle batches", recon_path=recon_path)
+    values = np.asarray([v for batch in found for v in batch], dtype=np.float32).T
+    dims = ("position", "angle")
+    scan_io.create_variable(grp, POSITION_DISAGREEMENT, (npos, nang), (npos, nang), dims, "float32", np.nan, values)
+
+
 def sensitivity_warning(
-    shift_over_grain: np.ndarray, visibility: np.ndarray, misfit: np.ndarray | None = None
+    shift_over_grain: np.ndarray,
+    visibility: np.ndarray,
+    misfit: np.ndarray | None = None,
+    disagreement: np.ndarray | None = None,
 ) -> str | None:
     """One line where some projections lie beyond :class:`pwf_dask.calibration.SensitivityLimits`
-    (the data carry little of their phase, or the model does not fit the sample), else None;
-    NaN (not measured) counts as neither."""
+    (the data carry little of their phase, the model does not fit the sample, or the diffuser
+    positions disagree), else None; NaN (not measured) counts as neither."""
     from pwf_dask.calibration import SensitivityLimits
 
     limits = SensitivityLimits()
@@ -815,7 +849,25 @@ def sensitivity_warning(
         )
     if misfit is not None:
         lines.append(_unfit_line(np.asarray(misfit), limits.max_sample_misfit))
+    if disagreement is not None:
+        lines.append(_disagreement_line(np.asarray(disagreement), limits.max_position_disagreement))
     return "; ".join(line for line in lines if line) or None
+
+
+def _disagreement_line(disagreement: np.ndarray, limit: float) -> str | None:
+    """The summary's words for the angles whose diffuser positions disagree by over ``limit``
+    (:func:`pwf_dask.calibration.position_disagreement`; every position of an angle reads alike
+    for K = 2, so an angle counts once, by its largest)."""
+    per_angle = np.max(np.where(np.isfinite(disagreement), disagreement, -np.inf), axis=0)
+    measured = np.isfinite(per_angle)
+    apart = measured & (per_angle > limit)
+    if not apart.any():
+        return None
+    return (
+        f"the diffuser positions' phases disagree by over {limit:g} of their rms on {int(apart.sum())} of "
+        f"{int(measured.sum())} angles (median {float(np.median(per_angle[measured])):.2f}): a position's phase is "
+        "unreliable there, and their mean too (docs/validation.md, 'What the data carry')"
+    )
 
 
 def _unfit_line(misfit: np.ndarray, limit: float) -> str | None:
@@ -838,7 +890,8 @@ def _warn_sensitivity(grp) -> None:
     if "speckle_shift_over_grain" not in grp:
         return
     misfit = grp["sample_misfit"][...] if "sample_misfit" in grp else None  # stores made before session 84 lack it
-    line = sensitivity_warning(grp["speckle_shift_over_grain"][...], grp["speckle_visibility"][...], misfit)
+    apart = grp[POSITION_DISAGREEMENT][...] if POSITION_DISAGREEMENT in grp else None  # K >= 2 only
+    line = sensitivity_warning(grp["speckle_shift_over_grain"][...], grp["speckle_visibility"][...], misfit, apart)
     if line:
         log.warning(f"retrieve: warning: {line}")
 

@@ -311,6 +311,7 @@ _OPTIONAL = (
     "speckle_shift_over_grain",
     "speckle_visibility",
     "sample_misfit",
+    "position_disagreement",
     "background_plane_phase",
     "background_plane_attenuation",
 )

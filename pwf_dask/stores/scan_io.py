@@ -341,6 +341,10 @@ VARIABLE_ATTRS: dict[str, tuple[str, str]] = {
     "speckle_shift_over_grain": ("1", "99th percentile of the phase's speckle shift over the speckle grain (PWF)"),
     "speckle_visibility": ("1", "reference speckle's rms over its mean, photon noise removed (PWF)"),
     "sample_misfit": ("1", "data misfit inside the sample over its background's, on the photon-noise scale (PWF)"),
+    "position_disagreement": (
+        "1",
+        "rms of a position's phase less the other positions' over the rms of their mean, in the sample (PWF, K >= 2)",
+    ),
     "background_plane_phase": ("rad", "plane subtracted from the phase (constant, row and column slopes per frame)"),
     "background_plane_attenuation": ("1", "plane subtracted from the attenuation (constant, row and column slopes)"),
     "delta": ("1", "refractive index decrement delta"),
