@@ -35,7 +35,7 @@ from dataclasses import replace
 import numpy as np
 
 from benchmarks.frame_size import fitted_phase_gain
-from benchmarks.reporting import command_line, device_name, read_rows_csv, write_rows_csv
+from benchmarks.reporting import command_line, device_name, rows_of
 from benchmarks.stability import bead_regions, errors
 from pwf_dask.retrieval import retrieve_projection
 from pwf_dask.simulation import SpeckleSetup, SpeckleSimulator, simulate_projection
@@ -212,11 +212,9 @@ def main(argv=None) -> None:
     ap.add_argument("--out", default="benchmarks/results", help="folder for detector_psf.md and .csv")
     ap.add_argument("--report-only", action="store_true", help="re-write the report from the CSV")
     a = ap.parse_args(argv)
-    if a.report_only:
-        rows = read_rows_csv(a.out, "detector_psf.csv")
-    else:
-        rows = [row for label, setup, seed in SCENES for row in scene_rows(label, setup, seed)]
-        write_rows_csv(a.out, "detector_psf.csv", rows)
+    rows = rows_of(
+        a.out, "detector_psf.csv", a.report_only, lambda: [r for scene in SCENES for r in scene_rows(*scene)]
+    )
     write_markdown(rows, f"{a.out}/detector_psf.md", command_line("benchmarks.detector_psf", argv))
 
 

@@ -28,7 +28,7 @@ import argparse
 import numpy as np
 
 from benchmarks.random_scenes import _method_options, draw_scene
-from benchmarks.reporting import command_line, device_name, read_rows_csv, write_rows_csv
+from benchmarks.reporting import command_line, device_name, rows_of
 from benchmarks.stability import PHASE_ERROR_THRESHOLD, errors, sensitivity_columns
 from pwf_dask.calibration import SensitivityLimits, position_disagreement
 from pwf_dask.calibration.sensitivity import DISAGREEMENT_SAMPLE_FRACTION
@@ -185,22 +185,20 @@ def write_markdown(rows: list[dict], path: str, command: str) -> None:
         f.write("\n".join(lines) + "\n")
 
 
+def _printed(row: dict) -> dict:
+    print(row, flush=True)
+    return row
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs=2, type=int, default=(0, 80), metavar=("FIRST", "END"))
     ap.add_argument("--out", default="benchmarks/results", help="folder for position_agreement.md and .csv")
     ap.add_argument("--report-only", action="store_true", help="re-write the report from the CSV")
     a = ap.parse_args(argv)
-    if a.report_only:
-        rows = read_rows_csv(a.out, "position_agreement.csv")
-    else:
-        rows = []
-        for i in range(*a.scenes):
-            rows.append(scene_row(i))
-            print(rows[-1], flush=True)
-        # a refused scene has no numbers: its cells are left empty
-        columns = list(dict.fromkeys(k for r in rows for k in r))
-        write_rows_csv(a.out, "position_agreement.csv", [{k: r.get(k, "") for k in columns} for r in rows])
+    rows = rows_of(
+        a.out, "position_agreement.csv", a.report_only, lambda: [_printed(scene_row(i)) for i in range(*a.scenes)]
+    )
     write_markdown(rows, f"{a.out}/position_agreement.md", command_line("benchmarks.position_agreement", argv))
 
 

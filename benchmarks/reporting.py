@@ -84,12 +84,23 @@ def read_rows_csv(out_dir: str | Path, name: str) -> list[dict]:
         return [{k: _parse_cell(v) for k, v in row.items()} for row in csv.DictReader(fh)]
 
 
+def rows_of(out_dir: str | Path, name: str, report_only: bool, compute) -> list[dict]:
+    """A benchmark's rows: ``compute()`` written to ``out_dir/name``, or with ``report_only``
+    the rows that file holds (its report written again without re-running)."""
+    if report_only:
+        return read_rows_csv(out_dir, name)
+    rows = compute()
+    write_rows_csv(out_dir, name, rows)
+    return rows
+
+
 def write_rows_csv(out_dir: str | Path, name: str, rows: list[dict]) -> Path:
-    """Rows (dicts with the same keys) as ``out_dir/name``, creating the folder."""
+    """Rows as ``out_dir/name``, creating the folder: one column per key of any row, in the
+    order first met; a row without a key (a refused scene) leaves its cell empty."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     with open(out / name, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)), restval="")
         w.writeheader()
         w.writerows(rows)
     return out
