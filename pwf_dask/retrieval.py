@@ -51,24 +51,27 @@ AUTHORS_RELEASE: dict[str, Any] = dict(
 )
 
 
-#: ``alpha`` spelled by name: "discrepancy" chooses Im(alpha) from the data
-#: (:func:`pwf_dask.pwf.solver.discrepancy_alpha`), "paper" is the paper's 0.1 + 0.01i.
-ALPHA_RULES = ("discrepancy", "paper")
+#: ``alpha`` spelled by name: "sensitivity" scales the default Im(alpha) to the
+#: data's phase sensitivity (:func:`pwf_dask.pwf.solver.sensitivity_alpha`), "discrepancy"
+#: chooses it by the residual (:func:`pwf_dask.pwf.solver.discrepancy_alpha`), "paper" is the
+#: paper's 0.1 + 0.01i.
+ALPHA_RULES = ("sensitivity", "discrepancy", "paper")
 
 
 def parse_alpha(alpha) -> complex | str:
-    """``alpha`` as "discrepancy" or a complex number; one line naming the option otherwise."""
+    """``alpha`` as "sensitivity", "discrepancy" or a complex number; one line naming the option
+    otherwise."""
     if isinstance(alpha, str):
         text = alpha.replace(" ", "").lower()
-        if text == "discrepancy":
-            return "discrepancy"
+        if text in ("discrepancy", "sensitivity"):
+            return text
         if text == "paper":
             return solver.PAPER_ALPHA
         try:
             alpha = complex(text)
         except ValueError:
             raise ValueError(
-                f"alpha must be 'discrepancy', 'paper' or a complex number like 0.1+0.01j, got {alpha!r}"
+                f"alpha must be 'sensitivity', 'discrepancy', 'paper' or a complex number like 0.1+0.01j, got {alpha!r}"
             ) from None
     alpha = complex(alpha)
     if not (np.isfinite(alpha.real) and np.isfinite(alpha.imag)) or alpha.real < 0 or alpha.imag < 0:
@@ -567,7 +570,9 @@ def retrieve_projection(
         587); ``"j"`` watches J alone (the rule before session 67).
     gamma, alpha : float, complex or str
         Regularization window width over the STF and weights, Eq. (regularization window) and
-        Algorithm S2; ``alpha="paper"`` (0.1+0.01j) or ``"discrepancy"`` (:func:`parse_alpha`);
+        Algorithm S2 (default 0.1+0.05j); ``alpha="sensitivity"`` (the default's imaginary part
+        lowered where the data see the phase weakly, :func:`pwf_dask.pwf.solver.sensitivity_alpha`),
+        ``"paper"`` (0.1+0.01j) or ``"discrepancy"`` (:func:`parse_alpha`);
         ``gamma=0`` or ``alpha=0``: no regularizer.
     step, step_search, restart : float, bool, str
         eta of Algorithm S1 (in units of 1/L with ``step_search``) and the momentum restart of
@@ -740,12 +745,20 @@ def retrieve_projection(
             bad_pixels=pair.bad_pixels,
         )
         # what the background fit took from the solver's psi: a scan's warm start adds it back
-        | {"background_planes": planes},
+        | {"background_planes": planes}
+        | _alpha_rule_record(pair.phase_sensitivity),
         background=mask,
     )
     return _with_sensitivity(
         res, ref, energy_eV, pixel_size_m, diffuser_detector_distance_m, intensity=y / scale, excluded=excluded
     )
+
+
+def _alpha_rule_record(phase_sensitivity: float | None) -> dict:
+    """The rule's entries where ``alpha="sensitivity"`` set alpha (:func:`_resolved_alpha`)."""
+    if phase_sensitivity is None:
+        return {}
+    return {"alpha_rule": "sensitivity", "phase_sensitivity": phase_sensitivity}
 
 
 def _with_sensitivity(
@@ -796,6 +809,7 @@ class _Pair:
     reference_outliers: int
     bad_pixels: int
     background_mask: Any = None
+    phase_sensitivity: float | None = None  # measured for alpha="sensitivity" only
 
 
 def _prepared_pair(
@@ -817,6 +831,7 @@ def _prepared_pair(
     bad = _checked_bad_pixels(bad_pixels, y.shape, xp)
     coherence = _coherence(ref, geometry, opts)
     opts = _resolved_grids(opts, geometry, coherence)
+    opts, phase_s = _resolved_alpha(opts, ref, geometry)
     fft = FFT.for_module(xp, opts.fft_workers)
     scale = float(xp.mean(ref))
     if not scale > 0:
@@ -843,8 +858,20 @@ def _prepared_pair(
         int(ref_outliers.sum()),
         0 if bad is None else int(bad.sum()),
         background_mask,
+        phase_s,
     )
     return pair, opts, prior, kappa
+
+
+def _resolved_alpha(opts: RetrievalOptions, ref, geometry: Geometry) -> tuple[RetrievalOptions, float | None]:
+    """``alpha="sensitivity"`` as a number, from the reference's phase sensitivity
+    (:func:`pwf_dask.pwf.solver.sensitivity_alpha`), and that sensitivity; other alphas as given."""
+    if opts.alpha != "sensitivity":
+        return opts, None
+    s = sensitivity.phase_sensitivity(
+        ref, optics.wavelength_m(geometry.energy_eV), geometry.diffuser_detector_distance_m, geometry.pixel_size_m
+    )
+    return replace(opts, alpha=solver.sensitivity_alpha(s)), s
 
 
 #: Iterations of each diffuser model that ``diffuser_model="auto"`` runs on the sample where

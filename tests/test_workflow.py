@@ -791,6 +791,20 @@ def test_discrepancy_alpha_is_chosen_once_recorded_and_kept_on_resume(tiny_scan,
     assert "discrepancy principle" not in capsys.readouterr().err
 
 
+def test_sensitivity_alpha_is_one_for_the_scan_and_recorded(tiny_scan, tmp_path, capsys):
+    """``--alpha sensitivity``: one alpha for every projection, from the phase sensitivity
+    averaged over the positions' references, recorded with it; a resumed run finds the same."""
+    recon = tmp_path / "r.zarr"
+    workflow.retrieve_scan(tiny_scan, recon, alpha="sensitivity", **FAST)
+    assert "for the data's phase sensitivity" in capsys.readouterr().err
+    attrs = xr.open_zarr(recon).attrs
+    s = attrs["phase_sensitivity"]
+    assert attrs["alpha_rule"] == "sensitivity" and s > 0
+    assert attrs["alpha"] == str(solver.sensitivity_alpha(s)).strip("()")
+    workflow.retrieve_scan(tiny_scan, recon, alpha="sensitivity", **FAST)  # resumed: same parameters
+    assert xr.open_zarr(recon).attrs["alpha"] == attrs["alpha"]
+
+
 def test_the_store_records_the_diffuser_model_auto_chose():
     """``diffuser_model="auto"``: the single-material fit at 10 keV, zero phase at 20 keV (silicon
     carbide's beta/delta 0.003), a named model as named, an unknown one refused in one line."""

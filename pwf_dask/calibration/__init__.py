@@ -35,6 +35,7 @@ from pwf_dask.calibration.drift import shift_transmission, speckle_drift_px, uns
 from pwf_dask.calibration.sensitivity import (
     Sensitivity,
     SensitivityLimits,
+    phase_sensitivity,
     position_disagreement,
     sample_misfit,
     speckle_grain_px,
@@ -64,6 +65,7 @@ __all__ = [
     "shift_transmission",
     "single_material_diffuser",
     "speckle_drift_px",
+    "phase_sensitivity",
     "speckle_grain_px",
     "speckle_shift_px",
     "speckle_spectrum",

@@ -30,7 +30,7 @@ from pwf_dask.physics.optics import check_detector_blur, wavelength_m
 from pwf_dask.pipeline import estimate
 from pwf_dask.pipeline.cluster import Runner, check_scheduler, worker_fft_threads
 from pwf_dask.pwf.model import check_sample_field_grid
-from pwf_dask.pwf.solver import PAPER_ALPHA
+from pwf_dask.pwf.solver import PAPER_ALPHA, sensitivity_alpha
 from pwf_dask.retrieval import (
     DIFFUSER_FIELD_UPSAMPLE,
     METHODS,
@@ -428,6 +428,26 @@ def choose_scan_alpha(scan_path, recon_path, options: dict, device: str, coheren
     return complex(res.parameters["alpha"]), json.dumps(res.parameters["alpha_trials"])
 
 
+def scan_sensitivity_alpha(g, info, geometry: Geometry, flat, dark, corrected, outlier_sigma) -> tuple[complex, float]:
+    """alpha="sensitivity" for a scan: :func:`pwf_dask.pwf.solver.sensitivity_alpha` of the
+    phase sensitivity averaged over the positions' references, one alpha for every projection
+    (a tomogram's slices must share their regularization). Returns (alpha, sensitivity)."""
+    wavelength = wavelength_m(geometry.energy_eV)
+    values = [
+        calibration.phase_sensitivity(
+            _read_reference(g, p, flat, dark, corrected, outlier_sigma),
+            wavelength,
+            geometry.diffuser_detector_distance_m,
+            geometry.pixel_size_m,
+        )
+        for p in range(info.n_positions)
+    ]
+    s = float(np.mean(values))
+    alpha = sensitivity_alpha(s)
+    _say(f"alpha: {str(alpha).strip('()')} for the data's phase sensitivity {s:.3g}")
+    return alpha, s
+
+
 def _peak_rss_mb() -> float:
     """Peak resident memory of this process (MB): the worker's, on distributed."""
     import resource
@@ -525,13 +545,16 @@ def retrieve_scan(
     if fits:
         # the tasks are given the lengths: they must know whether the pixel's blur is in them
         options["coherence_includes_pixel_blur"] = fits[0][0].includes_pixel_blur
-    alpha_rule, alpha_trials = "given", "n/a"
+    alpha_rule, alpha_trials, phase_s = "given", "n/a", "n/a"
     if alpha_c == "discrepancy" and method == "pwf":
         probe = dict(method=method, max_iter=max_iter, tol=tol, gamma=gamma, step=step, precision=precision)
         probe.update(outlier_sigma=outlier_sigma, **options)
         alpha_c, alpha_trials = choose_scan_alpha(scan_path, recon_path, probe, device, coherence)
         alpha_rule = "discrepancy"
-    elif alpha_c == "discrepancy":  # the speckle-tracking baselines have no alpha
+    elif alpha_c == "sensitivity" and method == "pwf":
+        alpha_c, phase_s = scan_sensitivity_alpha(g, info, geometry, flat, dark, corrected, outlier_sigma)
+        alpha_rule = "sensitivity"
+    elif alpha_c in ("discrepancy", "sensitivity"):  # the speckle-tracking baselines have no alpha
         alpha_c, alpha_rule = PAPER_ALPHA, "n/a"
     if method in MULTI_IMAGE:
         from dataclasses import replace
@@ -543,6 +566,7 @@ def retrieve_scan(
         "alpha": str(alpha_c).strip("()"),
         "alpha_rule": alpha_rule,
         "alpha_trials": alpha_trials,
+        "phase_sensitivity": phase_s,
         "step": float(step),
         "tol": float(tol),
         "max_iter": int(max_iter),
