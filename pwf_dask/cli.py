@@ -389,9 +389,9 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--alpha",
         default=str(DEFAULTS.alpha).strip("()"),
-        help="regularization weights: a complex number (default: %(default)s, docs/methods.md), 'sensitivity' "
-        "(the default's Im(alpha) lowered where the data see the phase weakly: faint speckle, high energy; once "
-        "per scan), 'paper' (0.1+0.01j) or 'discrepancy' (Im(alpha) by the discrepancy principle, once per scan)",
+        help="regularization weights: 'sensitivity' (the default: 0.1+0.05j, docs/methods.md, with Im(alpha) "
+        "lowered where the data see the phase weakly: faint speckle, high energy; once per scan), a complex number, "
+        "'paper' (0.1+0.01j) or 'discrepancy' (Im(alpha) by the discrepancy principle, once per scan)",
     )
     p.add_argument(
         "--phase-scale",

@@ -17,7 +17,7 @@ from pwf_dask.calibration.coherence import DEFAULT_COHERENCE_METHOD
 from pwf_dask.calibration.diffuser import REFINE_ITER
 from pwf_dask.physics.detector import DEFAULT_OUTLIER_SIGMA
 from pwf_dask.physics.diffusers import DEFAULT_MATERIAL
-from pwf_dask.pwf.solver import DEFAULT_ALPHA, DEFAULT_GAMMA, DEFAULT_STEP, STOP_RULE
+from pwf_dask.pwf.solver import DEFAULT_GAMMA, DEFAULT_STEP, STOP_RULE
 
 #: The sample's one material (MIST, the single-material prior) when none is named.
 DEFAULT_SAMPLE_MATERIAL = "cellulose"
@@ -48,7 +48,9 @@ class RetrievalOptions:
     initial: Any = "zero"
     # Algorithm S2: regularizer, preconditioner, objective scale
     gamma: float = DEFAULT_GAMMA
-    alpha: complex | str = DEFAULT_ALPHA
+    #: "sensitivity": DEFAULT_ALPHA where the data see the phase as the paper's scene does, its
+    #: Im lowered where they see it more weakly (pwf_dask.pwf.solver.sensitivity_alpha)
+    alpha: complex | str = "sensitivity"
     preconditioner: bool = True
     normalization: str = "paper"
     phase_scale: float | str = 1.0

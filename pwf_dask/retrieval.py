@@ -570,9 +570,9 @@ def retrieve_projection(
         587); ``"j"`` watches J alone (the rule before session 67).
     gamma, alpha : float, complex or str
         Regularization window width over the STF and weights, Eq. (regularization window) and
-        Algorithm S2 (default 0.1+0.05j); ``alpha="sensitivity"`` (the default's imaginary part
-        lowered where the data see the phase weakly, :func:`pwf_dask.pwf.solver.sensitivity_alpha`),
-        ``"paper"`` (0.1+0.01j) or ``"discrepancy"`` (:func:`parse_alpha`);
+        Algorithm S2: ``"sensitivity"`` (the default: 0.1+0.05j, its imaginary part lowered
+        where the data see the phase weakly, :func:`pwf_dask.pwf.solver.sensitivity_alpha`),
+        a complex number, ``"paper"`` (0.1+0.01j) or ``"discrepancy"`` (:func:`parse_alpha`);
         ``gamma=0`` or ``alpha=0``: no regularizer.
     step, step_search, restart : float, bool, str
         eta of Algorithm S1 (in units of 1/L with ``step_search``) and the momentum restart of
@@ -1343,7 +1343,7 @@ def _zeroed_background(phase, attenuation, background_mask, unseen):
     one. The mask comes back on the host, the images on their device; ``planes`` holds each
     plane's [constant, row slope, column slope] (:func:`~pwf_dask.physics.background.plane_terms`)."""
     xp = get_array_module(phase)
-    mask = xp.asarray(background_mask) if background_mask is not None else bg.detect_background(phase, attenuation)
+    mask = xp.asarray(background_mask) if background_mask is not None else bg.projection_background(phase, attenuation)
     fit = mask if unseen is None else _seen_background(mask, xp.asarray(unseen))
     phase, phase_plane = bg.zeroed_with_plane(phase, fit)
     attenuation, attenuation_plane = bg.zeroed_with_plane(attenuation, fit)
@@ -1604,5 +1604,5 @@ def _seen_window(unseen: np.ndarray) -> tuple[slice, slice]:
 def _tracking_background(phase, attenuation, background_mask, unseen) -> np.ndarray:
     """The given background mask, or the one detected, without the unseen strips (their
     values are extrapolated)."""
-    mask = background_mask if background_mask is not None else bg.detect_background(phase, attenuation)
+    mask = background_mask if background_mask is not None else bg.projection_background(phase, attenuation)
     return _seen_background(mask, unseen)

@@ -8,6 +8,7 @@ import pytest
 
 from pwf_dask import RetrievalOptions, cli, retrieve_projection
 from pwf_dask.options import DEFAULTS, OPTION_NAMES
+from pwf_dask.retrieval import parse_alpha
 from pwf_dask.simulation import SpeckleSetup, simulate_projection
 
 #: the keyword options the outside contract names for retrieve_projection
@@ -60,7 +61,7 @@ def test_the_clis_defaults_are_the_options_defaults():
     for name, value in shared.items():
         default = getattr(DEFAULTS, name)
         if name == "alpha":
-            value = complex(value)
+            value, default = parse_alpha(value), parse_alpha(default)
         assert value == default, name
 
 

@@ -490,9 +490,11 @@ def test_alpha_from_the_phase_sensitivity_reads_the_phase_the_default_holds_back
 
 
 def test_alpha_from_the_phase_sensitivity_keeps_the_default_on_the_papers_scene():
+    """The default rule (alpha="sensitivity") on the paper's scene is the fixed 0.1+0.05j, bit for bit."""
     sim = simulate_projection(SpeckleSetup(shape=(96, 96)), seed=1)
-    given = retrieve_projection(sim.sample, sim.reference, max_iter=30, **kwargs(sim))
-    rule = retrieve_projection(sim.sample, sim.reference, max_iter=30, alpha="sensitivity", **kwargs(sim))
+    given = retrieve_projection(sim.sample, sim.reference, max_iter=30, alpha=solver.DEFAULT_ALPHA, **kwargs(sim))
+    rule = retrieve_projection(sim.sample, sim.reference, max_iter=30, **kwargs(sim))
+    assert rule.parameters["alpha_rule"] == "sensitivity"
     assert rule.parameters["phase_sensitivity"] > solver.TUNED_PHASE_SENSITIVITY
     assert rule.parameters["alpha"] == given.parameters["alpha"] == "0.1+0.05j"
     assert given.parameters["alpha_rule"] == "given"

@@ -95,15 +95,19 @@ def test_assess_words_each_limit_it_finds_broken(rng):
 
 
 @pytest.mark.parametrize(
-    ("setup", "flagged"),
+    ("setup", "alpha", "flagged"),
     [
-        (SpeckleSetup(shape=(128, 128)), False),  # the paper's optics: d / g ~ 0.1
-        (SpeckleSetup(shape=(128, 128), energy_eV=25e3), True),  # P3000 fades at 25 keV, the shift too
+        (SpeckleSetup(shape=(128, 128)), "sensitivity", False),  # the paper's optics: d / g ~ 0.1
+        # P3000 fades at 25 keV (visibility 0.042): the fixed alpha reads 0.24 of the phase,
+        # whose shift is 0.010 of the grain; the default rule lowers Im(alpha) to 0.0038 and
+        # reads it (gain 1.06, shift 0.025), and the data then carry it
+        (SpeckleSetup(shape=(128, 128), energy_eV=25e3), "0.1+0.05j", True),
+        (SpeckleSetup(shape=(128, 128), energy_eV=25e3), "sensitivity", False),
     ],
 )
-def test_pwf_warns_where_the_data_carry_little_of_the_phase_and_only_there(setup, flagged):
+def test_pwf_warns_where_the_data_carry_little_of_the_phase_and_only_there(setup, alpha, flagged):
     sim = simulate_projection(setup, seed=1)
-    res = retrieve_projection(sim.sample, sim.reference, **sim.geometry())
+    res = retrieve_projection(sim.sample, sim.reference, alpha=alpha, **sim.geometry())
     deep = sim.phase < -0.5
     gain = float((res.phase[deep] * sim.phase[deep]).sum() / (sim.phase[deep] ** 2).sum())
     limits = SensitivityLimits()
@@ -111,6 +115,9 @@ def test_pwf_warns_where_the_data_carry_little_of_the_phase_and_only_there(setup
     assert (p["sensitivity_warning"] is not None) == flagged
     if flagged:
         assert p["speckle_shift_over_grain"] < limits.min_shift_over_grain and gain < 0.5
+    elif setup.energy_eV > 20e3:
+        assert complex(p["alpha"]).imag < 0.005 and 0.9 < gain < 1.2
+        assert p["speckle_shift_over_grain"] > limits.min_shift_over_grain
     else:
         assert p["speckle_shift_over_grain"] > 2 * limits.min_shift_over_grain and gain > 0.7
         assert p["speckle_visibility"] > 4 * limits.min_visibility
@@ -119,10 +126,10 @@ def test_pwf_warns_where_the_data_carry_little_of_the_phase_and_only_there(setup
 
 def test_a_scans_summary_counts_the_projections_below_each_limit():
     shift = np.array([[0.1, 0.015, np.nan], [0.01, 0.2, 0.3]])
-    visibility = np.array([[0.2, 0.2, np.nan], [0.04, 0.2, 0.2]])
+    visibility = np.array([[0.2, 0.2, np.nan], [0.03, 0.2, 0.2]])
     line = sensitivity_warning(shift, visibility)
     assert "under 0.02 of its grain on 2 of 5 projections (median 0.100)" in line
-    assert "visibility is under 0.05 on 1 (median 0.200)" in line
+    assert "visibility is under 0.035 on 1 (median 0.200)" in line
     assert sensitivity_warning(np.full((1, 3), 0.1), np.full((1, 3), 0.2)) is None
     assert sensitivity_warning(np.full((1, 3), np.nan), np.full((1, 3), np.nan)) is None
     misfit = np.array([[1.0, 2.5, np.nan], [1.4, 0.9, 1.1]])

@@ -67,7 +67,9 @@ def test_contract_layout(tiny_scan, tmp_path):
         "pwf_dask_version",
     ):
         assert key in ds.attrs, key
-    assert ds.attrs["alpha"] == "0.1+0.05j" and ds.attrs["alpha_rule"] == "given"
+    # the default rule keeps the fixed alpha where the data see the phase as the paper's scene does
+    assert ds.attrs["alpha"] == "0.1+0.05j" and ds.attrs["alpha_rule"] == "sensitivity"
+    assert ds.attrs["phase_sensitivity"] > 0.015
     assert (ds["iterations"].values == 25).all()
     # sinogram slabs are one chunk per angle: chunks hold whole rows of one angle
     assert ds["phase"].encoding["chunks"][:2] == (1, 1)

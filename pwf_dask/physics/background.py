@@ -21,6 +21,13 @@ from pwf_dask.backend import get_array_module, ndimage, to_numpy
 #: the fewest sample-free pixels a background surface is fitted on
 MIN_BACKGROUND_PIXELS = 6
 
+#: A retrieved projection's background is flat to a few per cent of the sample's depth, not
+#: to its small-scale noise: PWF's low frequencies carry a relative error (the 430 x 2220
+#: strip of 172 rad PMMA rods, docs/validation.md: the gaps between the rods sit +-10 rad off
+#: one plane under 0.2 rad of noise). Pixels within this fraction of the deepest sample
+#: below the plane count as background in a projection (:func:`detect_background`).
+PROJECTION_RELATIVE_TOLERANCE = 0.05
+
 
 def _exponents(degree: int) -> list[tuple[int, int]]:
     """(i, j) of the surface's terms y^i x^j, constant first."""
@@ -113,15 +120,19 @@ def detect_background(
     margin_px: int = 4,
     iterations: int = 20,
     start_quantile: float = 0.9,
+    relative_tolerance: float = 0.0,
 ):
     """Boolean mask of sample-free pixels (True = background).
 
     Starts from the top decile of the smoothed phase (matter only lowers it), then
     iterates: fit a plane over the current background; call a pixel "sample" where the
     smoothed phase lies more than ``k`` noise sigmas below the plane (or the attenuation
-    above it); grow the sample by ``margin_px`` for edge fringes; refit. The noise sigma is
-    measured on small scales, so a sample covering most of the frame cannot inflate it.
-    The mask is of the phase's array module.
+    above it), or more than ``relative_tolerance`` of the deepest sample's depth below it
+    where that is larger; grow the sample by ``margin_px`` for edge fringes; refit. The
+    noise sigma is measured on small scales, so a sample covering most of the frame cannot
+    inflate it. With ``relative_tolerance`` 0 a background that is not flat to ``k`` noise
+    sigmas is found in one patch only, and the plane through that patch tilts the frame
+    (:data:`PROJECTION_RELATIVE_TOLERANCE`). The mask is of the phase's array module.
     """
     xp = get_array_module(phase)
     nd = ndimage(xp)
@@ -133,9 +144,9 @@ def detect_background(
     if at is not None:
         mask &= at <= xp.quantile(at[mask], 0.5)
     for _ in range(iterations):
-        sample = ph - fit_plane(ph, mask) < -k * sig_p
+        sample = _below(ph - fit_plane(ph, mask), k * sig_p, relative_tolerance)
         if at is not None:
-            sample |= at - fit_plane(at, mask) > k * sig_a
+            sample |= _below(fit_plane(at, mask) - at, k * sig_a, relative_tolerance)
         if margin_px:
             # CuPy grows by more than one pixel only brute force (the same mask, by definition)
             sample = nd.binary_dilation(sample, iterations=margin_px, brute_force=xp is not np)
@@ -144,6 +155,21 @@ def detect_background(
             break
         mask = new
     return mask
+
+
+def projection_background(phase, attenuation=None):
+    """Sample-free pixels of a retrieved projection (PWF's or a tracking method's):
+    :func:`detect_background` with :data:`PROJECTION_RELATIVE_TOLERANCE`."""
+    return detect_background(phase, attenuation, relative_tolerance=PROJECTION_RELATIVE_TOLERANCE)
+
+
+def _below(deviation, noise_tolerance: float, relative_tolerance: float):
+    """Where ``deviation`` (image minus its background plane, matter negative) lies below
+    the larger of the noise tolerance and ``relative_tolerance`` of its deepest value."""
+    tolerance = noise_tolerance
+    if relative_tolerance > 0:
+        tolerance = max(tolerance, -relative_tolerance * float(deviation.min()))
+    return deviation < -tolerance
 
 
 def zero_background(image, background, degree: int = 1):

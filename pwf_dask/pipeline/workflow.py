@@ -443,9 +443,7 @@ def scan_sensitivity_alpha(g, info, geometry: Geometry, flat, dark, corrected, o
         for p in range(info.n_positions)
     ]
     s = float(np.mean(values))
-    alpha = sensitivity_alpha(s)
-    _say(f"alpha: {str(alpha).strip('()')} for the data's phase sensitivity {s:.3g}")
-    return alpha, s
+    return sensitivity_alpha(s), s
 
 
 def _peak_rss_mb() -> float:
@@ -753,6 +751,8 @@ def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, co
     done = _verified_done(runner, recon_path, grp)
     chains = [c for c in angle_chains(grp["angle"][...], done.shape[0], angle_chain) if any(done[i] < 0 for i in c)]
     missing = int((done < 0).sum())
+    if params["alpha_rule"] == "sensitivity":  # said once the store is known to be this scan's
+        _say(f"alpha: {params['alpha']} for the data's phase sensitivity {params['phase_sensitivity']:.3g}")
     _say(f"retrieve: {missing} of {done.size} projections to compute ({done.size - missing} already done)")
     t0 = time.perf_counter()
     try:

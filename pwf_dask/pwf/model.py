@@ -16,10 +16,12 @@ from pwf_dask.backend import FFT, complex_dtype, real_dtype
 from pwf_dask.physics import optics
 
 #: Regularization weights of Algorithm S2: the paper's value (``alpha="paper"``), and the
-#: default. With the paper's Im(alpha) the phase outside the STF fits the noise and beads of
-#: 2-12 coherence lengths overshoot by 30-50 % on the paper's diffuser; Im(alpha) = 0.05 holds
-#: them within 5 % from 1e3 to 1e5 ph/px (docs/methods.md, "Regularization"), a choice no
-#: data rule tried beat (:func:`pwf_dask.pwf.solver.discrepancy_alpha` fails at both ends of that range).
+#: default where the data see the phase as the paper's scene does (the default rule,
+#: ``alpha="sensitivity"``, lowers its Im where they see it more weakly). With the paper's
+#: Im(alpha) the phase outside the STF fits the noise and beads of 2-12 coherence lengths
+#: overshoot by 30-50 % on the paper's diffuser; Im(alpha) = 0.05 holds them within 5 % from
+#: 1e3 to 1e5 ph/px (docs/methods.md, "Regularization"), where the discrepancy rule
+#: (:func:`pwf_dask.pwf.solver.discrepancy_alpha`) fails at both ends of that range.
 PAPER_ALPHA = 0.1 + 0.01j
 DEFAULT_ALPHA = 0.1 + 0.05j
 

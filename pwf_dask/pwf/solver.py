@@ -471,9 +471,10 @@ def sensitivity_alpha(
     the same). Lowering Im(alpha) by sqrt(S / tuned) there, a middle way between keeping the
     penalty (bias) and scaling it by S (the balance the paper's scene has, at the cost of the
     noise): on 80 random geometries PWF then holds on 43 instead of 33 (docs/methods.md,
-    "Im(alpha) from the data's phase sensitivity"). Not the default: on the wide 430 x 2220
-    strip of thick rods (25 keV, 6.5 um pixels) the weaker penalty lets in a tilt the data do not
-    see (rms error 7.5 -> 11.3 rad). Re(alpha) stays: the attenuation is seen through the mean
+    "Im(alpha) from the data's phase sensitivity"). The default since session 91, once the
+    background of a projection was found whole (:func:`pwf_dask.physics.background.projection_background`):
+    on the wide 430 x 2220 strip of thick rods the rule's phase then holds as the fixed alpha's
+    does (rms error 8.05 / 8.10 rad). Re(alpha) stays: the attenuation is seen through the mean
     intensity, not the speckle's shift. At or above ``tuned`` ``base`` is returned exactly.
     """
     if not phase_sensitivity < tuned:
