@@ -11,9 +11,10 @@ on the random geometries of :mod:`benchmarks.random_scenes` in three sets:
   holding scene;
 - scenes 80-119, drawn from the same ranges and looked at while choosing;
 - scenes 120-159, never looked at before this benchmark ran: the held-out check;
-- the paper's optics (its 256^2 scene, P3000) at 16-25 keV on two diffuser draws, where the
+- the paper's optics (its 256^2 scene, P3000) at 16-30 keV on two diffuser draws, where the
   speckle fades and the phase shrinks together: the family that set the shift limit at 0.02
-  (one draw holds at 0.022-0.028 from 21 to 23 keV);
+  (one draw holds at 0.022-0.028 from 21 to 23 keV), and from 26 keV (session 92) the check of
+  the phase-sensitivity limit (28 keV still holds at S = 4.8e-5);
 - the stability map's scene axes (:mod:`benchmarks.stability`, the paper's scene varied one axis
   at a time), PWF with its lengths calibrated as in the map's column of that name: its failures
   there are of the other kind (steep phase, coarse pixels, strong absorption, a short L2), which
@@ -56,7 +57,7 @@ SETS = (
 
 
 #: energies (keV) and draws of the paper-optics sweep
-ENERGIES_KEV = (16.0, 18.0, 20.0, 21.0, 22.0, 23.0, 24.0, 25.0)
+ENERGIES_KEV = (16.0, 18.0, 20.0, 21.0, 22.0, 23.0, 24.0, 25.0, 26.0, 27.0, 28.0, 30.0)
 ENERGY_SEEDS = (1, 2)
 
 
@@ -84,8 +85,8 @@ def energy_lines(rows: list[dict]) -> list[str]:
         "The paper's optics (256^2, P3000, 1e4 ph/px, L1 3 mm, L2 20 mm) at other energies, two diffuser draws",
         "(phase error / gain, shift / grain; `*` flagged):",
         "",
-        "| keV | visibility | " + " | ".join(f"draw {s}" for s in ENERGY_SEEDS) + " |",
-        "|---:|---:|" + "---|" * len(ENERGY_SEEDS),
+        "| keV | visibility | S | " + " | ".join(f"draw {s}" for s in ENERGY_SEEDS) + " |",
+        "|---:|---:|---:|" + "---|" * len(ENERGY_SEEDS),
     ]
     for e in dict.fromkeys(r["energy_keV"] for r in rows):
         rs = [r for r in rows if r["energy_keV"] == e]
@@ -94,7 +95,8 @@ def energy_lines(rows: list[dict]) -> list[str]:
             + (" *" if r["flagged"] else "")
             for r in rs
         ]
-        lines.append(f"| {e:g} | {rs[0]['speckle_visibility_measured']:.3f} | " + " | ".join(cells) + " |")
+        head = f"| {e:g} | {rs[0]['speckle_visibility_measured']:.3f} | {_sensitivity(rs[0])} | "
+        lines.append(head + " | ".join(cells) + " |")
     return lines
 
 
@@ -137,6 +139,12 @@ def _misfit(row: dict) -> str:
     """The row's sample misfit, blank where it was not measured (rows written before session 84)."""
     value = float(row.get("sample_misfit", np.nan))
     return f"{value:.2f}" if np.isfinite(value) else ""
+
+
+def _sensitivity(row: dict) -> str:
+    """The row's phase sensitivity S, blank where it was not recorded (rows written before session 92)."""
+    value = float(row.get("phase_sensitivity", np.nan))
+    return f"{value:.1e}" if np.isfinite(value) else ""
 
 
 def _set_name(scene: int) -> str:
@@ -191,7 +199,8 @@ def write_report(
         "random geometries of `benchmarks.random_scenes` (one projection each; module docstring: the ranges).",
         "The warning (`RetrievalResult.parameters['sensitivity_warning']`, a run's one-line summary) fires where",
         f"the retrieved phase moves the speckle by under {limits.min_shift_over_grain:g} of its grain (99th",
-        f"percentile) or the reference's visibility, photon noise removed, is under {limits.min_visibility:g}.",
+        f"percentile), the reference's visibility, photon noise removed, is under {limits.min_visibility:g}, or its",
+        f"phase sensitivity S (`calibration.phase_sensitivity`, session 92) is under {limits.min_phase_sensitivity:g}.",
         f"A scene holds below a relative phase error of {PHASE_ERROR_THRESHOLD:g} inside the sample.",
         "",
         "| scenes | retrieved | holds | flagged of them | fails | flagged of them | gain, flagged fails "
@@ -210,17 +219,17 @@ def write_report(
         "",
         "Every random scene (phase error / gain; shift / grain and visibility as the retrieval measured them):",
         "",
-        "| scene | phase error | gain | shift / grain | visibility | sample misfit | flagged | holds |",
-        "|---:|---:|---:|---:|---:|---:|---|---|",
+        "| scene | phase error | gain | shift / grain | visibility | S | sample misfit | flagged | holds |",
+        "|---:|---:|---:|---:|---:|---:|---:|---|---|",
     ]
     for r in rows:
         if r["refused"]:
-            lines.append(f"| {r['scene']} | refused | | | | | | |")
+            lines.append(f"| {r['scene']} | refused | | | | | | | |")
             continue
         lines.append(
             f"| {r['scene']} | {r['phase_error']:.3f} | {r['phase_gain']:.2f} | {r['speckle_shift_over_grain']:.4f} "
-            f"| {r['speckle_visibility_measured']:.3f} | {_misfit(r)} | {'yes' if r['flagged'] else ''} "
-            f"| {'yes' if r['holds'] else ''} |"
+            f"| {r['speckle_visibility_measured']:.3f} | {_sensitivity(r)} | {_misfit(r)} "
+            f"| {'yes' if r['flagged'] else ''} | {'yes' if r['holds'] else ''} |"
         )
     Path(out_dir, "sensitivity_check.md").write_text("\n".join(lines) + "\n")
 

@@ -327,12 +327,13 @@ def pwf_options(opts: dict, pwf_over: dict, setup: SpeckleSetup) -> dict:
 def sensitivity_columns(parameters: dict) -> dict:
     """What PWF's own check measured at a point (:mod:`pwf_dask.calibration.sensitivity`):
     the retrieved phase's speckle shift over the grain, the reference's visibility, the fit's
-    misfit in the sample over its background's and whether it warned; NaN and False for the
-    methods that do not measure it."""
+    misfit in the sample over its background's, the reference's phase sensitivity and whether
+    it warned; NaN and False for the methods that do not measure it."""
     return {
         "speckle_shift_over_grain": parameters.get("speckle_shift_over_grain", np.nan),
         "speckle_visibility_measured": parameters.get("speckle_visibility", np.nan),
         "sample_misfit": parameters.get("sample_misfit", np.nan),
+        "phase_sensitivity": parameters.get("phase_sensitivity", np.nan),
         "flagged": bool(parameters.get("sensitivity_warning")),
     }
 

@@ -180,6 +180,7 @@ def test_stability_points_carry_the_check_only_where_pwf_measured_it():
             "speckle_shift_over_grain": 0.01,
             "speckle_visibility": 0.2,
             "sample_misfit": 1.6,
+            "phase_sensitivity": 2e-5,
             "sensitivity_warning": "faint",
         }
     )
@@ -187,6 +188,7 @@ def test_stability_points_carry_the_check_only_where_pwf_measured_it():
         "speckle_shift_over_grain": 0.01,
         "speckle_visibility_measured": 0.2,
         "sample_misfit": 1.6,
+        "phase_sensitivity": 2e-5,
         "flagged": True,
     }
     blank = sensitivity_columns({})

@@ -83,15 +83,40 @@ def test_assess_words_each_limit_it_finds_broken(rng):
     )
     assert found.shift_over_grain == 0.0
     assert "moves the speckle by 0.000" in found.warning and "visibility is 0.030" in found.warning
+    # 0.03 contrast over 2-px grains, lambda L2 / 2 pi p^2 = 0.32: S = 0.32^2 x 0.03^2 / 4
+    assert found.phase_sensitivity == pytest.approx(2.3e-5, rel=0.1)
+    assert "phase sensitivity is 2.3e-05 (below 3e-05" in found.warning
     assert set(found.parameters()) == {
         "speckle_visibility",
         "speckle_grain_px",
         "speckle_shift_px",
         "speckle_shift_over_grain",
         "sample_misfit",
+        "phase_sensitivity",
         "sensitivity_warning",
     }
     assert np.isnan(found.sample_misfit)  # no residual given: not measured
+
+
+@pytest.mark.parametrize(("distance_m", "flagged"), [(0.02, True), (0.2, False)])
+def test_assess_flags_data_whose_frame_a_phase_gradient_barely_changes(rng, distance_m, flagged):
+    """A bright speckle (visibility 0.2, 6.7-px grains) under a cone steep enough to move it by
+    over 0.02 of its grain still carries little where lambda L2 / 2 pi p^2 is small: at 1e-11 m
+    and 20 mm that factor is 0.032 and S = 0.032^2 x 0.2^2 / 2^2 = 1.0e-5, below the limit;
+    ten times the distance gives 100 times S and no warning."""
+    reference = gaussian_speckle(rng, 2.0, 0.2)
+    y, x = np.mgrid[:256, :256]
+    r = np.hypot(y - 128, x - 128)
+    phase = np.where(r < 40, -6.0 * (40 - r), 0.0)
+    kw = dict(wavelength_m=1e-11, diffuser_detector_distance_m=distance_m, pixel_size_m=1e-6)
+    found = sensitivity.assess(phase, reference, background=r >= 44, **kw)
+    limits = SensitivityLimits()
+    assert found.visibility > 4 * limits.min_visibility and found.shift_over_grain > limits.min_shift_over_grain
+    expected = (1e-11 * distance_m / (2 * np.pi * 1e-12)) ** 2 * 0.2**2 / 2.0**2
+    assert found.phase_sensitivity == pytest.approx(expected, rel=0.05)
+    assert (found.warning is not None) == flagged
+    if flagged:
+        assert found.warning.startswith("the data's phase sensitivity is 1.0e-05 (below 3e-05")
 
 
 @pytest.mark.parametrize(
@@ -141,6 +166,11 @@ def test_a_scans_summary_counts_the_projections_below_each_limit():
     line = sensitivity_warning(np.full((2, 3), 0.1), np.full((2, 3), 0.2), None, apart)
     assert line.startswith("the diffuser positions' phases disagree by over 0.35 of their rms on 1 of 2 angles")
     assert sensitivity_warning(np.full((2, 3), 0.1), np.full((2, 3), 0.2), None, np.full((2, 3), 0.2)) is None
+    # the scan's phase sensitivity, one number for all its projections; None: not measured
+    line = sensitivity_warning(np.full((1, 3), 0.1), np.full((1, 3), 0.2), phase_sensitivity=1e-5)
+    assert line.startswith("the data's phase sensitivity is 1.0e-05 (below 3e-05")
+    assert sensitivity_warning(np.full((1, 3), 0.1), np.full((1, 3), 0.2), phase_sensitivity=1e-3) is None
+    assert sensitivity_warning(np.full((1, 3), 0.1), np.full((1, 3), 0.2), phase_sensitivity=None) is None
 
 
 def test_position_disagreement_reads_a_positions_difference_over_their_mean():

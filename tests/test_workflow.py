@@ -787,6 +787,7 @@ def test_discrepancy_alpha_is_chosen_once_recorded_and_kept_on_resume(tiny_scan,
     attrs = xr.open_zarr(recon).attrs
     trials = json.loads(attrs["alpha_trials"])
     assert attrs["alpha_rule"] == "discrepancy" and len(trials) >= 2
+    assert attrs["phase_sensitivity"] > 0.015  # measured for every PWF scan, the warning reads it
     assert complex(attrs["alpha"]).imag in solver.ALPHA_IMAG_LADDER and complex(attrs["alpha"]).real == 0.1
     assert attrs["alpha"] in [t[0] for t in trials]
     workflow.retrieve_scan(tiny_scan, recon, alpha="discrepancy", **FAST)  # resumed: same parameters

@@ -10,8 +10,9 @@ the quantity every speckle-tracking method measures and the one the 80 random ge
 docs/validation.md sort by. Where d is a small fraction of the speckle grain g (the width of
 the reference's autocorrelation), or the speckle itself is faint, the measured frame hardly
 differs from the reference and no single-image method gets the phase back: PWF returns too
-little of it (or, rarely, too much). :func:`assess` measures d / g on the retrieved phase and the visibility on the
-reference, and words a warning where either lies below :class:`SensitivityLimits`
+little of it (or, rarely, too much). :func:`assess` measures d / g on the retrieved phase, and
+the visibility and :func:`phase_sensitivity` (how much a unit phase gradient changes the
+frame) on the reference, and words a warning where one lies below :class:`SensitivityLimits`
 (benchmarks/sensitivity_check.py: on 160 random geometries and the paper's optics at 16-25 keV
 no holding scene is flagged, and over half the failures are; the others read part of the phase).
 
@@ -61,10 +62,16 @@ class SensitivityLimits:
     background's (above it the model does not fit the sample; benchmarks/results/sensitivity_check.md).
     ``max_position_disagreement``: :func:`position_disagreement` of a scan's K >= 2 diffuser
     positions (benchmarks/results/position_agreement.md: above every pair of 37 where both hold).
+    ``min_phase_sensitivity``: :func:`phase_sensitivity` of the reference, measured before any
+    fit (session 92): no random scene below 7.2e-5 holds (31 of 151 lie below 3e-5, every one
+    a failure, 7 of them unflagged by the other limits), and the paper's 256^2 scene still
+    holds at 28 keV (4.8e-5 and 5.2e-5 on two draws, looked at after the limit was chosen among
+    2e-5 to 7e-5) and fails at 30 keV (3.4e-5, flagged by the visibility).
     """
 
     min_shift_over_grain: float = 0.02
     min_visibility: float = 0.035
+    min_phase_sensitivity: float = 3e-5
     max_sample_misfit: float = 1.3
     max_position_disagreement: float = 0.35
 
@@ -79,6 +86,7 @@ class Sensitivity:
     shift_over_grain: float
     warning: str | None
     sample_misfit: float = float("nan")  # NaN: not measured (no residual, or no background)
+    phase_sensitivity: float = float("nan")
 
     def parameters(self) -> dict:
         """The record ``RetrievalResult.parameters`` keeps."""
@@ -88,6 +96,7 @@ class Sensitivity:
             "speckle_shift_px": self.speckle_shift_px,
             "speckle_shift_over_grain": self.shift_over_grain,
             "sample_misfit": self.sample_misfit,
+            "phase_sensitivity": self.phase_sensitivity,
             "sensitivity_warning": self.warning,
         }
 
@@ -262,17 +271,23 @@ def assess(
     excluded=None,
     limits: SensitivityLimits = SensitivityLimits(),
 ) -> Sensitivity:
-    """Visibility and grain of ``reference``, the speckle shift of ``phase`` over the pixels
-    ``background`` (True = sample-free) leaves, the fit's :func:`sample_misfit` where the
-    ``residual`` and the measured ``intensity`` are given, and a one-line warning where the
-    data carry little of the phase or the model does not fit the sample
-    (:class:`SensitivityLimits`)."""
+    """Visibility, grain and :func:`phase_sensitivity` of ``reference``, the speckle shift of
+    ``phase`` over the pixels ``background`` (True = sample-free) leaves, the fit's
+    :func:`sample_misfit` where the ``residual`` and the measured ``intensity`` are given, and a
+    one-line warning where the data carry little of the phase or the model does not fit the
+    sample (:class:`SensitivityLimits`)."""
     visibility = speckle_visibility(reference)
     grain = speckle_grain_px(reference)
     sample = None if background is None else ~background
     shift = speckle_shift_px(phase, wavelength_m, diffuser_detector_distance_m, pixel_size_m, sample)
     ratio = shift / grain if grain > 0 else float("nan")
+    s = phase_sensitivity(reference, wavelength_m, diffuser_detector_distance_m, pixel_size_m)
     problems = []
+    if s < limits.min_phase_sensitivity:
+        problems.append(
+            f"the data's phase sensitivity is {s:.1e} (below {limits.min_phase_sensitivity:g}: "
+            "the speckle's shift barely changes the frame)"
+        )
     if ratio < limits.min_shift_over_grain:
         problems.append(
             f"the sample moves the speckle by {ratio:.3f} of its {grain:.1f}-px grain "
@@ -291,7 +306,7 @@ def assess(
         misfit = sample_misfit(residual, intensity, background, excluded)
     if misfit > limits.max_sample_misfit:
         warnings.append(misfit_warning(misfit, limits))
-    return Sensitivity(visibility, grain, shift, ratio, "; ".join(warnings) or None, misfit)
+    return Sensitivity(visibility, grain, shift, ratio, "; ".join(warnings) or None, misfit, s)
 
 
 def misfit_warning(misfit: float, limits: SensitivityLimits = SensitivityLimits()) -> str:

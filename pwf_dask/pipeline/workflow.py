@@ -428,10 +428,12 @@ def choose_scan_alpha(scan_path, recon_path, options: dict, device: str, coheren
     return complex(res.parameters["alpha"]), json.dumps(res.parameters["alpha_trials"])
 
 
-def scan_sensitivity_alpha(g, info, geometry: Geometry, flat, dark, corrected, outlier_sigma) -> tuple[complex, float]:
-    """alpha="sensitivity" for a scan: :func:`pwf_dask.pwf.solver.sensitivity_alpha` of the
-    phase sensitivity averaged over the positions' references, one alpha for every projection
-    (a tomogram's slices must share their regularization). Returns (alpha, sensitivity)."""
+def scan_phase_sensitivity(g, info, geometry: Geometry, flat, dark, corrected, outlier_sigma) -> float:
+    """The scan's phase sensitivity: :func:`pwf_dask.calibration.phase_sensitivity` averaged over
+    the positions' references. Measured for every PWF scan: ``alpha="sensitivity"`` sets one
+    alpha from it for every projection (a tomogram's slices must share their regularization,
+    :func:`pwf_dask.pwf.solver.sensitivity_alpha`), and the scan's warning compares it with
+    ``SensitivityLimits.min_phase_sensitivity``."""
     wavelength = wavelength_m(geometry.energy_eV)
     values = [
         calibration.phase_sensitivity(
@@ -442,8 +444,7 @@ def scan_sensitivity_alpha(g, info, geometry: Geometry, flat, dark, corrected, o
         )
         for p in range(info.n_positions)
     ]
-    s = float(np.mean(values))
-    return sensitivity_alpha(s), s
+    return float(np.mean(values))
 
 
 def _peak_rss_mb() -> float:
@@ -544,14 +545,15 @@ def retrieve_scan(
         # the tasks are given the lengths: they must know whether the pixel's blur is in them
         options["coherence_includes_pixel_blur"] = fits[0][0].includes_pixel_blur
     alpha_rule, alpha_trials, phase_s = "given", "n/a", "n/a"
+    if method == "pwf":
+        phase_s = scan_phase_sensitivity(g, info, geometry, flat, dark, corrected, outlier_sigma)
     if alpha_c == "discrepancy" and method == "pwf":
         probe = dict(method=method, max_iter=max_iter, tol=tol, gamma=gamma, step=step, precision=precision)
         probe.update(outlier_sigma=outlier_sigma, **options)
         alpha_c, alpha_trials = choose_scan_alpha(scan_path, recon_path, probe, device, coherence)
         alpha_rule = "discrepancy"
     elif alpha_c == "sensitivity" and method == "pwf":
-        alpha_c, phase_s = scan_sensitivity_alpha(g, info, geometry, flat, dark, corrected, outlier_sigma)
-        alpha_rule = "sensitivity"
+        alpha_c, alpha_rule = sensitivity_alpha(phase_s), "sensitivity"
     elif alpha_c in ("discrepancy", "sensitivity"):  # the speckle-tracking baselines have no alpha
         alpha_c, alpha_rule = PAPER_ALPHA, "n/a"
     if method in MULTI_IMAGE:
@@ -843,19 +845,27 @@ def sensitivity_warning(
     visibility: np.ndarray,
     misfit: np.ndarray | None = None,
     disagreement: np.ndarray | None = None,
+    phase_sensitivity: float | None = None,
 ) -> str | None:
     """One line where some projections lie beyond :class:`pwf_dask.calibration.SensitivityLimits`
     (the data carry little of their phase, the model does not fit the sample, or the diffuser
-    positions disagree), else None; NaN (not measured) counts as neither."""
+    positions disagree), or the scan's ``phase_sensitivity`` (:func:`scan_phase_sensitivity`)
+    lies below its limit, else None; NaN or None (not measured) counts as neither."""
     from pwf_dask.calibration import SensitivityLimits
 
     limits = SensitivityLimits()
     measured = np.isfinite(shift_over_grain)
     small = measured & (shift_over_grain < limits.min_shift_over_grain)
     faint = measured & (visibility < limits.min_visibility)
+    insensitive = phase_sensitivity is not None and phase_sensitivity < limits.min_phase_sensitivity
     lines = []
-    if (small | faint).any():
+    if (small | faint).any() or insensitive:
         parts = []
+        if insensitive:
+            parts.append(
+                f"the data's phase sensitivity is {phase_sensitivity:.1e} (below {limits.min_phase_sensitivity:g}: "
+                "the speckle's shift barely changes the frame)"
+            )
         if small.any():
             median = float(np.median(shift_over_grain[measured]))
             parts.append(
@@ -915,7 +925,14 @@ def _warn_sensitivity(grp) -> None:
         return
     misfit = grp["sample_misfit"][...] if "sample_misfit" in grp else None  # stores made before session 84 lack it
     apart = grp[POSITION_DISAGREEMENT][...] if POSITION_DISAGREEMENT in grp else None  # K >= 2 only
-    line = sensitivity_warning(grp["speckle_shift_over_grain"][...], grp["speckle_visibility"][...], misfit, apart)
+    s = grp.attrs.get("phase_sensitivity")  # "n/a" for the trackers and in stores made before session 92
+    line = sensitivity_warning(
+        grp["speckle_shift_over_grain"][...],
+        grp["speckle_visibility"][...],
+        misfit,
+        apart,
+        s if isinstance(s, (int, float)) else None,
+    )
     if line:
         log.warning(f"retrieve: warning: {line}")
 
