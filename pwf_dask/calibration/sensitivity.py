@@ -61,7 +61,9 @@ class SensitivityLimits:
     removed. ``max_sample_misfit``: :func:`sample_misfit`, the sample's misfit over the
     background's (above it the model does not fit the sample; benchmarks/results/sensitivity_check.md).
     ``max_position_disagreement``: :func:`position_disagreement` of a scan's K >= 2 diffuser
-    positions (benchmarks/results/position_agreement.md: above every pair of 37 where both hold).
+    positions (benchmarks/results/position_agreement.md: chosen in session 88 above every pair
+    of scenes 0-79 where both hold; under the alpha rule (session 93) above all 43 such pairs of
+    114, the largest 0.251, and 23 of the 47 failures the other limits miss lie above it).
     ``min_phase_sensitivity``: :func:`phase_sensitivity` of the reference, measured before any
     fit (session 92): no random scene below 7.2e-5 holds (31 of 151 lie below 3e-5, every one
     a failure, 7 of them unflagged by the other limits), and the paper's 256^2 scene still
@@ -284,10 +286,7 @@ def assess(
     s = phase_sensitivity(reference, wavelength_m, diffuser_detector_distance_m, pixel_size_m)
     problems = []
     if s < limits.min_phase_sensitivity:
-        problems.append(
-            f"the data's phase sensitivity is {s:.1e} (below {limits.min_phase_sensitivity:g}: "
-            "the speckle's shift barely changes the frame)"
-        )
+        problems.append(insensitive_words(s, limits))
     if ratio < limits.min_shift_over_grain:
         problems.append(
             f"the sample moves the speckle by {ratio:.3f} of its {grain:.1f}-px grain "
@@ -307,6 +306,15 @@ def assess(
     if misfit > limits.max_sample_misfit:
         warnings.append(misfit_warning(misfit, limits))
     return Sensitivity(visibility, grain, shift, ratio, "; ".join(warnings) or None, misfit, s)
+
+
+def insensitive_words(sensitivity: float, limits: SensitivityLimits = SensitivityLimits()) -> str:
+    """The words for data whose :func:`phase_sensitivity` lies below the limit (a projection's
+    warning and a scan's summary line say it alike)."""
+    return (
+        f"the data's phase sensitivity is {sensitivity:.1e} (below {limits.min_phase_sensitivity:g}: "
+        "the speckle's shift barely changes the frame)"
+    )
 
 
 def misfit_warning(misfit: float, limits: SensitivityLimits = SensitivityLimits()) -> str:

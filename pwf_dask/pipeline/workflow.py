@@ -852,6 +852,7 @@ def sensitivity_warning(
     positions disagree), or the scan's ``phase_sensitivity`` (:func:`scan_phase_sensitivity`)
     lies below its limit, else None; NaN or None (not measured) counts as neither."""
     from pwf_dask.calibration import SensitivityLimits
+    from pwf_dask.calibration.sensitivity import insensitive_words
 
     limits = SensitivityLimits()
     measured = np.isfinite(shift_over_grain)
@@ -862,10 +863,7 @@ def sensitivity_warning(
     if (small | faint).any() or insensitive:
         parts = []
         if insensitive:
-            parts.append(
-                f"the data's phase sensitivity is {phase_sensitivity:.1e} (below {limits.min_phase_sensitivity:g}: "
-                "the speckle's shift barely changes the frame)"
-            )
+            parts.append(insensitive_words(phase_sensitivity, limits))
         if small.any():
             median = float(np.median(shift_over_grain[measured]))
             parts.append(
