@@ -129,10 +129,11 @@ def test_single_material_prior_takes_the_rods_low_frequencies_from_the_attenuati
     """The issue's real-data regime (25 keV, 6.5 µm pixels, the diffuser 50 mm upstream and
     L1 = 0, L2 = 0.7 m, 6.7 % visibility): a 3.3 mm PMMA rod, core phase about -177 rad, on a
     160 x 700 crop, calibrated coherence, the single-material diffuser named (as measured).
-    PWF alone reads gain 1.028 there (the real crop: 1.05), a tilt: rms error 25.4 rad. Told
-    the sample is PMMA, its low frequencies follow the attenuation (Paganin's filter, ell ~ 20
-    px): gain 0.984, rms error 5.0 rad (430 x 2220 0.913 / 11.1 -> 0.978 / 4.1, 430 x 700 0.922
-    -> 0.974: benchmarks/results/frame_size.md)."""
+    PWF alone read gain 1.028 there under the fixed alpha (the real crop: 1.05), a tilt: rms
+    error 25.4 rad; under the default alpha rule 0.875 / 20.6 rad (session 95). Told the sample
+    is PMMA, its low frequencies follow the attenuation (Paganin's filter, ell ~ 20 px): gain
+    0.974, rms error 5.2 rad (430 x 2220 0.811 / 19.6 -> 0.977 / 4.1, 430 x 700 0.803 -> 0.974:
+    benchmarks/results/frame_size.md)."""
     from benchmarks.frame_size import STRIP_SETUP, _retrieve, phase_gain, phase_rms_error, strip_crop
 
     sample, reference, phase = rod_strip
@@ -160,8 +161,10 @@ def test_every_default_holds_the_issues_whole_frame_of_thick_rods(rod_strip):
     0.949, rms error 8.05 rad, 480 iterations (the fixed 0.1+0.05j: 0.954, 8.10 rad, 320; with
     the background of one gap it had read 0.957 and 7.5 rad by luck: docs/methods.md,
     "Im(alpha) from the data's phase sensitivity"). The issue asks for [0.95, 1.05]; 0.949 is
-    held to 0.945. The single-material diffuser fit reads 0.913 and 11.1 rad here (session 57,
-    docs/methods.md, "Every default on these strips")."""
+    held to 0.945 (`python -m benchmarks.frame_size --scenes defaults`, session 95: 0.951,
+    7.96 rad). The single-material diffuser fit read 0.913 and 11.1 rad here under the fixed
+    alpha and reads 0.811 and 19.6 rad under the rule (docs/methods.md, "These strips under the
+    default alpha rule")."""
     from benchmarks.frame_size import STRIP_SETUP, phase_gain, phase_rms_error
 
     sample, reference, phase = rod_strip
