@@ -394,3 +394,32 @@ def test_position_agreement_reads_equal_phases_as_agreeing_and_a_halved_one_by_i
     assert same == {"disagreement": 0.0, "rms_ratio": 1.0}
     half = agreement(phase, 0.5 * phase)
     assert half["disagreement"] == pytest.approx(2 / 3) and half["rms_ratio"] == pytest.approx(0.5)
+
+
+def test_diffuser_models_report_scores_each_rule_and_names_each_scenes_sensitivity(tmp_path):
+    """benchmarks/diffuser_models.py's table: hold counts per choice (errors under 0.25), the
+    probe's switches counted, and the listed scenes (models apart by over 0.05, or switched)
+    with the reference's phase sensitivity S that set alpha."""
+    from benchmarks.diffuser_models import write_report
+
+    def row(scene, auto, probe, zp, sm, s, ratio):
+        geometry = dict(energy_keV=20.0, pixel_um=1.0, l1_mm=0.0, upstream_mm=10.0, l2_mm=100.0)
+        return dict(
+            scene=scene, auto=auto, probe=probe, refused="", zp_error=zp, sm_error=sm, zp_gain=1.0,
+            sm_gain=1.0, zp_residual=1.0, sm_residual=1.0, zp_s=10.0, probe_s=2.0, probe_zp_residual=1.0,
+            probe_sm_residual=ratio, grain_radius_um=3.2, visibility=0.1, phase_sensitivity=s, **geometry,
+        )  # fmt: skip
+
+    rows = [
+        row(0, "zero-phase", "zero-phase", 0.10, 0.50, 8.9e-5, 0.9),
+        row(1, "zero-phase", "single-material", 0.60, 0.20, 2.0e-2, 0.3),
+        row(2, "single-material", "single-material", 0.10, 0.10, 5.0e-3, float("nan")),
+    ]
+    write_report(rows, tmp_path, "test device", "diffuser_models")
+    text = (tmp_path / "diffuser_models.md").read_text()
+    assert "| zero phase everywhere | 2 |" in text and "| single material everywhere | 2 |" in text
+    assert "the probe (20 iterations each) | 3 | 0.100 | 0.133 | 1 |" in text
+    listed = [line for line in text.splitlines() if line.startswith("| 0 |") or line.startswith("| 1 |")]
+    assert len(listed) == 2 and "| 8.9e-05 |" in listed[0] and "| 2.0e-02 |" in listed[1]
+    assert not any(line.startswith("| 2 |") for line in text.splitlines())
+    assert 'alpha="sensitivity"' in text
