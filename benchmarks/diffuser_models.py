@@ -17,9 +17,10 @@ retrieval can run: the other model where its final data residual is under half.
 
     python -m benchmarks.diffuser_models [--scenes 80] [--calibrated] [--out benchmarks/results]
 
-Writes ``diffuser_models.md`` and ``.csv`` (about 25 min for 80 scenes on 2 cores); with
+Writes ``diffuser_models.md`` and ``.csv`` (about 55 min for 80 scenes on 2 cores); with
 ``--calibrated`` each retrieval calibrates its coherence lengths from the reference, as a
-user's run does, into ``diffuser_models_calibrated.md`` and ``.csv``.
+user's run does, into ``diffuser_models_calibrated.md`` and ``.csv`` (about 30 min with
+``--scenes 40``).
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ the issue's real-data call on the whole 430 x 2220 frame both ways: time, iterat
 
     python -m benchmarks.probe_window [--out benchmarks/results]
 
-Writes ``probe_window.md``, ``.csv`` and ``probe_window_call.csv`` (about 7 minutes on 2 cores).
+Writes ``probe_window.md``, ``.csv`` and ``probe_window_call.csv`` (about 12 minutes on 2 cores).
 """
 
 from __future__ import annotations
