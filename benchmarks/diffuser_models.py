@@ -82,9 +82,12 @@ def scene_row(i: int, calibrated: bool = False) -> dict:
         row[f"{key}_residual"] = res.residual_rmse
         row[f"{key}_s"] = time.perf_counter() - t0
         row[f"{key}_iterations"] = res.iterations
-    # the same S and alpha for both models: the rule reads the reference alone
+        row[f"{key}_alpha"] = res.parameters["alpha"]
+    # the same S for both models: the rule reads the reference alone; the fit keeps the default
+    # alpha where its probe residual is over zero phase's (retrieval.alpha_rule_holds)
     row["phase_sensitivity"] = res.parameters.get("phase_sensitivity", float("nan"))
-    row["alpha"] = res.parameters["alpha"]
+    row["alpha"] = row["zp_alpha"]
+    row["sm_model_ratio"] = res.parameters.get("alpha_rule_model_ratio", float("nan"))
     if calibrated:  # the lengths the retrievals calibrated, as the probe's retrieval would
         options.update(coherence_length_x_m=res.coherence_length_x_m, coherence_length_y_m=res.coherence_length_y_m)
     t0 = time.perf_counter()
@@ -117,6 +120,29 @@ def _summary(name: str, errs: list[float], switched: int | str = "") -> str:
     e = np.asarray(errs)
     held = int(np.sum(e < PHASE_ERROR_THRESHOLD))
     return f"| {name} | {held} | {np.median(e):.3f} | {np.mean(e):.3f} | {switched} |"
+
+
+def _kept_default(r: dict) -> bool:
+    """Whether the single-material fit ran at the default alpha where the rule lowers it for
+    zero phase: the alpha rule's model probe found the fit misfitting more."""
+    return "sm_alpha" in r and r["sm_alpha"] != r["zp_alpha"]
+
+
+def _default_mark(r: dict) -> str:
+    return " (default alpha)" if _kept_default(r) else ""
+
+
+def _alpha_guard_sentence(rows: list[dict]) -> str:
+    """How often the alpha rule's model probe kept the fit at the default alpha."""
+    checked = [r for r in rows if np.isfinite(r.get("sm_model_ratio", float("nan")))]
+    if not checked:
+        return "The alpha rule's model probe ran in no scene."
+    kept = [r for r in checked if _kept_default(r)]
+    return (
+        f"The alpha rule's model probe ran in {len(checked)} scenes (S under 0.015, the single-material fit): "
+        f"in {len(kept)} the fit misfit the sample more than zero phase (probe residual ratio over 1) and kept "
+        "the default alpha, marked (default alpha) below."
+    )
 
 
 def write_report(rows: list[dict], out_dir: str | Path, device: str, name: str) -> None:
@@ -160,6 +186,8 @@ def write_report(rows: list[dict], out_dir: str | Path, device: str, name: str) 
         ),
         _summary("the better model of each scene (oracle)", np.minimum(zp, sm).tolist()),
         "",
+        _alpha_guard_sentence(rows),
+        "",
         f"The probe ran in {len(probed)} scenes: {np.median(cost):.2f}x the zero-phase retrieval's time "
         f"(median; {min(cost):.2f}-{max(cost):.2f}), which it adds to a single projection's retrieval"
         " (a scan pays it once per diffuser position)."
@@ -182,7 +210,7 @@ def write_report(rows: list[dict], out_dir: str | Path, device: str, name: str) 
             f"{r['upstream_mm']:.1f} | {r['l2_mm']:.0f} | {r['grain_radius_um']:.1f} | {r['visibility']:.3f} | "
             f"{r['phase_sensitivity']:.1e} | "
             f"{r['auto']} | {r['zp_error']:.3f} / {r['zp_gain']:.2f} / {r['zp_residual']:.2f} | "
-            f"{r['sm_error']:.3f} / {r['sm_gain']:.2f} / {r['sm_residual']:.2f} | "
+            f"{r['sm_error']:.3f} / {r['sm_gain']:.2f} / {r['sm_residual']:.2f}{_default_mark(r)} | "
             f"{'-' if np.isnan(ratio) else f'{ratio:.2f}'} | "
             f"{'yes' if ps else 'no'} / {'yes' if fs else 'no'} |"
         )

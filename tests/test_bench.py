@@ -415,6 +415,9 @@ def test_diffuser_models_report_scores_each_rule_and_names_each_scenes_sensitivi
         row(1, "zero-phase", "single-material", 0.60, 0.20, 2.0e-2, 0.3),
         row(2, "single-material", "single-material", 0.10, 0.10, 5.0e-3, float("nan")),
     ]
+    # the alpha rule's model probe: scene 0's fit kept the default, scene 2's the rule's alpha
+    rows[0].update(zp_alpha="0.1+0.004j", sm_alpha="0.1+0.05j", sm_model_ratio=1.2)
+    rows[2].update(zp_alpha="0.1+0.03j", sm_alpha="0.1+0.03j", sm_model_ratio=0.9)
     write_report(rows, tmp_path, "test device", "diffuser_models")
     text = (tmp_path / "diffuser_models.md").read_text()
     assert "| zero phase everywhere | 2 |" in text and "| single material everywhere | 2 |" in text
@@ -423,3 +426,5 @@ def test_diffuser_models_report_scores_each_rule_and_names_each_scenes_sensitivi
     assert len(listed) == 2 and "| 8.9e-05 |" in listed[0] and "| 2.0e-02 |" in listed[1]
     assert not any(line.startswith("| 2 |") for line in text.splitlines())
     assert 'alpha="sensitivity"' in text
+    assert "model probe ran in 2 scenes" in text and "in 1 the fit misfit the sample more" in text
+    assert "(default alpha)" in listed[0] and "(default alpha)" not in listed[1]

@@ -150,6 +150,7 @@ def test_single_material_prior_takes_the_rods_low_frequencies_from_the_attenuati
 
 
 @pytest.mark.slow
+@pytest.mark.full  # 5 min on 2 cores: `pytest -m full`; benchmarks/frame_size.py --scenes defaults repeats it
 def test_every_default_holds_the_issues_whole_frame_of_thick_rods(rod_strip):
     """Issue #27's whole 430 x 2220 frame of four PMMA rods as its real-data call makes it:
     ``retrieve_projection`` with L1 = 0, L2 = 0.7 m and nothing else, the diffuser's 50 mm

@@ -808,6 +808,41 @@ def test_sensitivity_alpha_is_one_for_the_scan_and_recorded(tiny_scan, tmp_path,
     assert xr.open_zarr(recon).attrs["alpha"] == attrs["alpha"]
 
 
+def test_a_scan_checks_the_alpha_rules_lower_alpha_once_against_the_diffuser_models(
+    tiny_scan, tmp_path, monkeypatch, capsys
+):
+    """Where the rule lowers alpha (the scan's sensitivity set to 1e-4 here) and the diffuser is
+    the single-material fit, the scan probes both models once, on position 0's middle
+    projection, records their residual ratio and keeps the default alpha where the fit misfits
+    more (forced each way here through the bound); a resumed run reads the ratio back and probes
+    nothing; zero phase is never probed."""
+    from pwf_dask import retrieval
+
+    monkeypatch.setattr(workflow, "scan_phase_sensitivity", lambda *a, **k: 1e-4)
+    calls = []
+    probe = retrieval.probe_diffuser_models
+    monkeypatch.setattr(retrieval, "probe_diffuser_models", lambda *a, **k: calls.append(a) or probe(*a, **k))
+    lowered = str(solver.sensitivity_alpha(1e-4)).strip("()")
+    single = dict(FAST, alpha="sensitivity", diffuser_model="single-material")
+    for bound, alpha in ((0.0, "0.1+0.05j"), (1e9, lowered)):
+        monkeypatch.setattr(retrieval, "ALPHA_RULE_MAX_MODEL_RATIO", bound)
+        workflow._DIFFUSERS.clear()
+        recon = tmp_path / f"{bound}.zarr"
+        workflow.retrieve_scan(tiny_scan, recon, **single)
+        attrs = xr.open_zarr(recon).attrs
+        assert attrs["alpha"] == alpha and attrs["alpha_rule_model_ratio"] > 0
+    said = capsys.readouterr().err
+    assert "the default, not lowered, as the single-material diffuser fit misfits" in said
+    assert f"alpha: {lowered} for" in said and "x zero phase's" in said
+    assert len(calls) == 2 and calls[0][0].shape == (32, 64)
+    workflow.retrieve_scan(tiny_scan, recon, **single)  # resumed: the stored ratio
+    assert len(calls) == 2
+    zero = tmp_path / "zero.zarr"
+    workflow.retrieve_scan(tiny_scan, zero, **dict(single, diffuser_model="zero-phase"))
+    attrs = xr.open_zarr(zero).attrs
+    assert len(calls) == 2 and attrs["alpha_rule_model_ratio"] == "n/a" and attrs["alpha"] == lowered
+
+
 def test_the_store_records_the_diffuser_model_auto_chose():
     """``diffuser_model="auto"``: the single-material fit at 10 keV, zero phase at 20 keV (silicon
     carbide's beta/delta 0.003), a named model as named, an unknown one refused in one line."""

@@ -30,7 +30,7 @@ from pwf_dask.physics.optics import check_detector_blur, wavelength_m
 from pwf_dask.pipeline import estimate
 from pwf_dask.pipeline.cluster import Runner, check_scheduler, worker_fft_threads
 from pwf_dask.pwf.model import check_sample_field_grid
-from pwf_dask.pwf.solver import PAPER_ALPHA, sensitivity_alpha
+from pwf_dask.pwf.solver import DEFAULT_ALPHA, PAPER_ALPHA, sensitivity_alpha
 from pwf_dask.retrieval import (
     DIFFUSER_FIELD_UPSAMPLE,
     METHODS,
@@ -428,6 +428,60 @@ def choose_scan_alpha(scan_path, recon_path, options: dict, device: str, coheren
     return complex(res.parameters["alpha"]), json.dumps(res.parameters["alpha_trials"])
 
 
+def guarded_scan_alpha(scan_path, recon_path, phase_s: float, options: dict, device: str, coherence):
+    """alpha="sensitivity" for a scan: the rule's alpha for the scan's phase sensitivity
+    (:func:`pwf_dask.pwf.solver.sensitivity_alpha`), one for every projection, kept at
+    :data:`pwf_dask.pwf.solver.DEFAULT_ALPHA` where the rule lowered it and the single-material
+    diffuser fit misfits position 0's projection at the middle angle more than zero phase
+    (:func:`pwf_dask.retrieval.alpha_rule_holds`, checked once as a projection checks it).
+    Returns (alpha, the probe's residual ratio or "n/a" where nothing was probed). A store that
+    already probed keeps its ratio, so a resumed run does not probe again."""
+    from pwf_dask import retrieval
+
+    alpha = sensitivity_alpha(phase_s)
+    frames = _scan_frames(scan_path)
+    if not retrieval.guards_alpha_rule(phase_s, _absorption_model(frames[0].attrs, options)):
+        return alpha, "n/a"
+    ratio = _stored_model_ratio(recon_path)
+    if ratio is None:
+        ratio = retrieval.model_probe_ratio(_probed_models(frames, options, device, coherence[0]))
+    return (alpha if retrieval.alpha_rule_holds(ratio) else DEFAULT_ALPHA), ratio
+
+
+def _stored_model_ratio(recon_path) -> float | None:
+    """The alpha rule's model probe ratio a store recorded, None where it holds none."""
+    import zarr
+
+    if not Path(recon_path).exists():
+        return None
+    try:
+        attrs = zarr.open_group(str(recon_path), mode="r", use_consolidated=False).attrs
+        return float(attrs["alpha_rule_model_ratio"])
+    except Exception:  # not a store (create_reconstruction says so), made before the probe, "n/a"
+        return None
+
+
+def _probed_models(frames, options: dict, device: str, coherence_xy) -> dict:
+    """Each diffuser model's probe residual on position 0's projection at the middle angle
+    (:func:`pwf_dask.retrieval.probe_diffuser_models`)."""
+    from pwf_dask import retrieval
+
+    g, flat, dark, corrected = frames
+    index = (0, g["projections"].shape[1] // 2)
+    sample, clipped = _read_corrected(g, "projections", index, flat, dark, corrected, with_saturated=True)
+    reference = _read_corrected(g, "reference", 0, flat, dark, corrected)
+    xp = resolve_device(device)
+    return retrieval.probe_diffuser_models(
+        xp.asarray(sample),
+        xp.asarray(reference),
+        Geometry.from_attrs(g.attrs),  # the options carry the upstream distance
+        coherence_length_x_m=coherence_xy[0],
+        coherence_length_y_m=coherence_xy[1],
+        bad_pixels=None if clipped is None else xp.asarray(clipped),
+        **options,
+    )
+
+
 def scan_phase_sensitivity(g, info, geometry: Geometry, flat, dark, corrected, outlier_sigma) -> float:
     """The scan's phase sensitivity: :func:`pwf_dask.calibration.phase_sensitivity` averaged over
     the positions' references. Measured for every PWF scan: ``alpha="sensitivity"`` sets one
@@ -544,7 +598,7 @@ def retrieve_scan(
     if fits:
         # the tasks are given the lengths: they must know whether the pixel's blur is in them
         options["coherence_includes_pixel_blur"] = fits[0][0].includes_pixel_blur
-    alpha_rule, alpha_trials, phase_s = "given", "n/a", "n/a"
+    alpha_rule, alpha_trials, phase_s, model_ratio = "given", "n/a", "n/a", "n/a"
     if method == "pwf":
         phase_s = scan_phase_sensitivity(g, info, geometry, flat, dark, corrected, outlier_sigma)
     if alpha_c == "discrepancy" and method == "pwf":
@@ -553,7 +607,9 @@ def retrieve_scan(
         alpha_c, alpha_trials = choose_scan_alpha(scan_path, recon_path, probe, device, coherence)
         alpha_rule = "discrepancy"
     elif alpha_c == "sensitivity" and method == "pwf":
-        alpha_c, alpha_rule = sensitivity_alpha(phase_s), "sensitivity"
+        probe = dict(precision=precision, outlier_sigma=outlier_sigma, **options)
+        alpha_c, model_ratio = guarded_scan_alpha(scan_path, recon_path, phase_s, probe, device, coherence)
+        alpha_rule = "sensitivity"
     elif alpha_c in ("discrepancy", "sensitivity"):  # the speckle-tracking baselines have no alpha
         alpha_c, alpha_rule = PAPER_ALPHA, "n/a"
     if method in MULTI_IMAGE:
@@ -567,6 +623,7 @@ def retrieve_scan(
         "alpha_rule": alpha_rule,
         "alpha_trials": alpha_trials,
         "phase_sensitivity": phase_s,
+        "alpha_rule_model_ratio": model_ratio,
         "step": float(step),
         "tol": float(tol),
         "max_iter": int(max_iter),
@@ -744,6 +801,22 @@ def _model_record(method: str, options: dict, energy_eV: float) -> dict:
     return record
 
 
+def _alpha_rule_line(params: dict) -> str:
+    """What ``alpha="sensitivity"`` chose for the scan, in one line."""
+    line = f"alpha: {params['alpha']} for the data's phase sensitivity {params['phase_sensitivity']:.3g}"
+    ratio = params.get("alpha_rule_model_ratio", "n/a")
+    if ratio == "n/a":
+        return line
+    from pwf_dask.retrieval import alpha_rule_holds
+
+    if alpha_rule_holds(ratio):
+        return f"{line} (the single-material diffuser fit's probe residual {ratio:.3g}x zero phase's)"
+    return (
+        f"{line}: the default, not lowered, as the single-material diffuser fit misfits the sample"
+        f" {ratio:.3g}x as much as zero phase"
+    )
+
+
 def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, coherence, angle_chain) -> dict:
     """Create or reopen the store, verify what it holds, and compute the missing projections."""
     import zarr
@@ -754,7 +827,7 @@ def _run_retrieval(runner, info, params, scan_path, recon_path, opts, device, co
     chains = [c for c in angle_chains(grp["angle"][...], done.shape[0], angle_chain) if any(done[i] < 0 for i in c)]
     missing = int((done < 0).sum())
     if params["alpha_rule"] == "sensitivity":  # said once the store is known to be this scan's
-        _say(f"alpha: {params['alpha']} for the data's phase sensitivity {params['phase_sensitivity']:.3g}")
+        _say(_alpha_rule_line(params))
     _say(f"retrieve: {missing} of {done.size} projections to compute ({done.size - missing} already done)")
     t0 = time.perf_counter()
     try:
