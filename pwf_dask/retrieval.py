@@ -908,8 +908,8 @@ DIFFUSER_PROBE_RATIO = 0.5
 #: The alpha rule keeps its lower Im(alpha) with the single-material diffuser fit only where
 #: the fit's probe residual is at most this multiple of zero phase's (:func:`alpha_rule_holds`):
 #: the fit then explains the sample's data at least as well as the paper's estimate. 1 is the
-#: natural bound, not a tuned one: 0.95-1.1 read the same within one scene on the 80 random
-#: geometries (docs/validation.md, "The alpha rule's model probe").
+#: natural bound, not a tuned one: on the 80 random geometries 1.02-1.2 would hold the fit on
+#: 33-34 scenes for 1's 35 (docs/validation.md, "The alpha rule's model probe").
 ALPHA_RULE_MAX_MODEL_RATIO = 1.0
 #: Frame pixels the probe reads at most: a larger frame is probed on its centred window of
 #: about this many (:func:`probe_window`), as a frame of its own. The probe picks a model, not
@@ -1036,7 +1036,7 @@ def guards_alpha_rule(phase_sensitivity: float | None, diffuser_model: str) -> b
     """Whether the alpha rule's Im(alpha) waits on the diffuser models' probe
     (:func:`alpha_rule_holds`): the rule lowered it (``phase_sensitivity`` under
     :data:`pwf_dask.pwf.solver.TUNED_PHASE_SENSITIVITY`) and the diffuser is the
-    single-material fit. None: alpha was not the rule's."""
+    single-material fit. ``phase_sensitivity`` None: alpha was not the rule's."""
     return (
         phase_sensitivity is not None
         and phase_sensitivity < solver.TUNED_PHASE_SENSITIVITY
