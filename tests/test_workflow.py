@@ -837,6 +837,11 @@ def test_a_scan_checks_the_alpha_rules_lower_alpha_once_against_the_diffuser_mod
     assert len(calls) == 2 and calls[0][0].shape == (32, 64)
     workflow.retrieve_scan(tiny_scan, recon, **single)  # resumed: the stored ratio
     assert len(calls) == 2
+    made_before = zarr.open_group(str(recon), mode="r+", use_consolidated=False)
+    del made_before.attrs["alpha_rule_model_ratio"]  # a store of the rule before the probe
+    monkeypatch.setattr(retrieval, "ALPHA_RULE_MAX_MODEL_RATIO", 0.0)
+    workflow.retrieve_scan(tiny_scan, recon, **single)  # resumes with its own alpha, unprobed
+    assert len(calls) == 2 and xr.open_zarr(recon).attrs["alpha"] == lowered
     zero = tmp_path / "zero.zarr"
     workflow.retrieve_scan(tiny_scan, zero, **dict(single, diffuser_model="zero-phase"))
     attrs = xr.open_zarr(zero).attrs

@@ -435,30 +435,35 @@ def guarded_scan_alpha(scan_path, recon_path, phase_s: float, options: dict, dev
     diffuser fit misfits position 0's projection at the middle angle more than zero phase
     (:func:`pwf_dask.retrieval.alpha_rule_holds`, checked once as a projection checks it).
     Returns (alpha, the probe's residual ratio or "n/a" where nothing was probed). A store that
-    already probed keeps its ratio, so a resumed run does not probe again."""
+    already probed keeps its ratio, so a resumed run does not probe again; one made by the rule
+    before the probe (session 98) keeps its alpha, so that it resumes."""
     from pwf_dask import retrieval
 
     alpha = sensitivity_alpha(phase_s)
     frames = _scan_frames(scan_path)
     if not retrieval.guards_alpha_rule(phase_s, _absorption_model(frames[0].attrs, options)):
         return alpha, "n/a"
-    ratio = _stored_model_ratio(recon_path)
-    if ratio is None:
+    stored = _stored_alpha_rule(recon_path)
+    if stored.get("alpha_rule") == "sensitivity" and "alpha_rule_model_ratio" not in stored:
+        return complex(str(stored["alpha"]).replace(" ", "")), "n/a"
+    ratio = stored.get("alpha_rule_model_ratio")
+    if not isinstance(ratio, float):
         ratio = retrieval.model_probe_ratio(_probed_models(frames, options, device, coherence[0]))
     return (alpha if retrieval.alpha_rule_holds(ratio) else DEFAULT_ALPHA), ratio
 
 
-def _stored_model_ratio(recon_path) -> float | None:
-    """The alpha rule's model probe ratio a store recorded, None where it holds none."""
+def _stored_alpha_rule(recon_path) -> dict:
+    """The alpha rule's record (``alpha_rule``, ``alpha``, ``alpha_rule_model_ratio``) of an
+    existing reconstruction store, {} where there is none."""
     import zarr
 
     if not Path(recon_path).exists():
-        return None
+        return {}
     try:
         attrs = zarr.open_group(str(recon_path), mode="r", use_consolidated=False).attrs
-        return float(attrs["alpha_rule_model_ratio"])
-    except Exception:  # not a store (create_reconstruction says so), made before the probe, "n/a"
-        return None
+    except Exception:  # not a store: create_reconstruction says so in one line
+        return {}
+    return {k: attrs[k] for k in ("alpha_rule", "alpha", "alpha_rule_model_ratio") if k in attrs}
 
 
 def _probed_models(frames, options: dict, device: str, coherence_xy) -> dict:
