@@ -428,9 +428,10 @@ def choose_scan_alpha(scan_path, recon_path, options: dict, device: str, coheren
     return complex(res.parameters["alpha"]), json.dumps(res.parameters["alpha_trials"])
 
 
-def guarded_scan_alpha(scan_path, recon_path, phase_s: float, options: dict, device: str, coherence):
-    """alpha="sensitivity" for a scan: the rule's alpha for the scan's phase sensitivity
-    (:func:`pwf_dask.pwf.solver.sensitivity_alpha`), one for every projection, kept at
+def guarded_scan_alpha(frames, recon_path, phase_s: float, options: dict, device: str, coherence):
+    """alpha="sensitivity" for a scan (``frames`` as :func:`_scan_frames` opened it): the rule's
+    alpha for the scan's phase sensitivity (:func:`pwf_dask.pwf.solver.sensitivity_alpha`), one
+    for every projection, kept at
     :data:`pwf_dask.pwf.solver.DEFAULT_ALPHA` where the rule lowered it and the single-material
     diffuser fit misfits position 0's projection at the middle angle more than zero phase
     (:func:`pwf_dask.retrieval.alpha_rule_holds`, checked once as a projection checks it).
@@ -440,7 +441,6 @@ def guarded_scan_alpha(scan_path, recon_path, phase_s: float, options: dict, dev
     from pwf_dask import retrieval
 
     alpha = sensitivity_alpha(phase_s)
-    frames = _scan_frames(scan_path)
     if not retrieval.guards_alpha_rule(phase_s, _absorption_model(frames[0].attrs, options)):
         return alpha, "n/a"
     stored = _stored_alpha_rule(recon_path)
@@ -613,7 +613,8 @@ def retrieve_scan(
         alpha_rule = "discrepancy"
     elif alpha_c == "sensitivity" and method == "pwf":
         probe = dict(precision=precision, outlier_sigma=outlier_sigma, **options)
-        alpha_c, model_ratio = guarded_scan_alpha(scan_path, recon_path, phase_s, probe, device, coherence)
+        frames = (g, flat, dark, corrected)  # as opened above: flat and dark read once
+        alpha_c, model_ratio = guarded_scan_alpha(frames, recon_path, phase_s, probe, device, coherence)
         alpha_rule = "sensitivity"
     elif alpha_c in ("discrepancy", "sensitivity"):  # the speckle-tracking baselines have no alpha
         alpha_c, alpha_rule = PAPER_ALPHA, "n/a"
