@@ -29,6 +29,7 @@
 #                      cylinder_draws_1e3.*: at 1e3 ph/px, ~14 min; cylinder_draws_96rows.*: 96 rows, P3000, ~10 min)
 #   coherence_sensitivity.* ~12 min: phase gain against coherence-length error (0.7-1.3x), every other default
 #   detector_psf.*     ~15 min: PWF (calibrated, given the blurred lengths) and UMPA K=1 under the detector's own blur
+#   upstream_distance.* ~15 min: an upstream diffuser (L1 = 0) at 0-100 mm, PWF at each assumed distance: what selects it
 #   position_agreement.* ~25 min: two diffuser positions' retrievals of the random geometries: do they agree where PWF fails?
 #   alpha_sensitivity.* ~30 min: alpha="sensitivity" against the default alpha: random geometries 0-79, 10-25 keV, the rod strip
 #   coarse_start.*     ~25 min: a coarse-to-fine start (2x2 binned solve) against zero and the true psi
@@ -80,6 +81,7 @@ case "${1:-all}" in
   random-scenes) "$(dirname "$PWF")/python" -m benchmarks.random_scenes --out "$OUT" ;;
   sensitivity-check) "$(dirname "$PWF")/python" -m benchmarks.sensitivity_check --out "$OUT" ;;
   detector-psf) "$(dirname "$PWF")/python" -m benchmarks.detector_psf --out "$OUT" ;;
+  upstream-distance) "$(dirname "$PWF")/python" -m benchmarks.upstream_distance --out "$OUT" ;;
   position-agreement) "$(dirname "$PWF")/python" -m benchmarks.position_agreement --out "$OUT" ;;
   alpha-sensitivity) "$(dirname "$PWF")/python" -m benchmarks.alpha_sensitivity --out "$OUT" ;;
   sensitivity-check-stability) "$(dirname "$PWF")/python" -m benchmarks.sensitivity_check --only-stability --out "$OUT" ;;
@@ -92,6 +94,6 @@ case "${1:-all}" in
   fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --part all --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-edge cylinder-draws-single-material cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity detector-psf alpha-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes sensitivity-check position-agreement diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|cylinder-draws|cylinder-draws-why|cylinder-draws-edge|cylinder-draws-single-material|cylinder-draws-1e3|cylinder-draws-96rows|coherence-sensitivity|detector-psf|alpha-sensitivity|position-agreement|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|sensitivity-check|sensitivity-check-stability|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-edge cylinder-draws-single-material cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity detector-psf upstream-distance alpha-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes sensitivity-check position-agreement diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|cylinder-draws|cylinder-draws-why|cylinder-draws-edge|cylinder-draws-single-material|cylinder-draws-1e3|cylinder-draws-96rows|coherence-sensitivity|detector-psf|upstream-distance|alpha-sensitivity|position-agreement|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|sensitivity-check|sensitivity-check-stability|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
 esac

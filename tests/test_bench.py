@@ -428,3 +428,33 @@ def test_diffuser_models_report_scores_each_rule_and_names_each_scenes_sensitivi
     assert 'alpha="sensitivity"' in text
     assert "model probe ran in 2 scenes" in text and "in 1 the fit misfit the sample more" in text
     assert "(default alpha)" in listed[0] and "(default alpha)" not in listed[1]
+
+
+def test_upstream_distance_report_puts_each_selector_where_its_quantity_is_least(tmp_path):
+    """benchmarks/upstream_distance.py's summary: per grit and true distance, the mean phase
+    error at each assumed distance over the seeds, zero phase's, and per seed the assumed
+    distance where the reference fit's residual, PWF's residual and the phase error are least."""
+    import math
+
+    from benchmarks.upstream_distance import write_markdown
+
+    def row(seed, assumed, fit, residual, error, model="default"):
+        return dict(
+            grit="P3000", true_mm=50.0, seed=seed, assumed_mm=assumed, model=model,
+            reference_fit_residual=fit, residual_pct=residual, phase_gain=0.9, phase_error=error,
+            diffuser_model="zero-phase" if model == "zero-phase" else "single-material", iterations=100, seconds=1.0,
+        )  # fmt: skip
+
+    rows = []
+    for seed, shift in ((1, 0.0), (2, 0.02)):
+        rows += [
+            row(seed, 0.0, 0.010, 1.1, 0.10 + shift),
+            row(seed, 50.0, 0.012 - shift, 1.3, 0.06 + shift),
+            row(seed, math.nan, math.nan, 1.0, 0.08, model="zero-phase"),
+        ]
+    write_markdown(rows, str(tmp_path / "u.md"), "python -m benchmarks.upstream_distance")
+    text = (tmp_path / "u.md").read_text()
+    assert "| phase error, assumed: 0 mm | 50 mm | zero phase |" in text
+    # errors 0.110 / 0.070 mean over the seeds; the fit's residual least at 0 then at 50 mm
+    assert "| P3000 | 50 | 0.110 | 0.070 | 0.080 | 0 / 50 | 0 / 0 | 50 / 50 |" in text
+    assert "| P3000 | 50 | 1 | zero-phase |  |  | 1.000 |" in text
