@@ -13,13 +13,21 @@ default needs:
    with exp(psi) on the field grid (the default) and on the detector grid
    (``sample_field_grid="detector"``, :func:`pwf_dask.pwf.model.build_model`), timed in one run.
 
-    python -m benchmarks.field_grid [--out benchmarks/results] [--part all|cost|detector|scenes]
+    python -m benchmarks.field_grid [--out benchmarks/results] [--part all|cost|detector|scenes|random|report]
 
 3. exp(psi) on either grid across scenes (``--part scenes``): the geometry sweep's scenes that take
    a field grid and the real-data regime's 160 x 700 strip, relative phase error and gain.
+4. exp(psi) on either grid on ``benchmarks.random_scenes``' 80 random geometries (``--part random``,
+   calibrated coherence, every default): each scene once on the field grid, and again with
+   exp(psi) on the detector grid where ``field_upsample="auto"`` took a finer grid (that grid
+   given: under "auto" a grid taken for coarse pixels keeps exp(psi) on it since session 100,
+   :func:`pwf_dask.retrieval.sample_field_grid_on`, which these rows measured); split by
+   what the alpha rule did (lowered Im(alpha) and its model probe let it stand, or the default
+   alpha), as the scenes above all ran under the default alpha.
 
-Writes ``field_grid.md``, ``field_grid.csv``, ``field_grid_rod.csv``, ``field_grid_scenes.csv`` and
-``field_grid_cost.csv`` (about 12 minutes on 2 cores; ``--part scenes`` about 4).
+Writes ``field_grid.md``, ``field_grid.csv``, ``field_grid_rod.csv``, ``field_grid_scenes.csv``,
+``field_grid_random.csv`` and ``field_grid_cost.csv`` (about 12 minutes on 2 cores without the
+random scenes; ``--part scenes`` about 4, ``--part random`` about 35).
 """
 
 from __future__ import annotations
@@ -167,12 +175,14 @@ def scene_rows() -> list[dict]:
     rows = []
     for name, sample, reference, geometry, phase, attenuation, extra in _scenes():
         background = np.abs(phase) < 1e-3 * np.abs(phase).max()
+        grid = {}  # the detector-grid run on the field run's grid, given (as random_rows)
         for where in ("field", "detector"):
             t0 = time.perf_counter()
             r = retrieve_projection(
-                sample, reference, **geometry, background_mask=background, sample_field_grid=where, **extra
+                sample, reference, **geometry, background_mask=background, sample_field_grid=where, **grid, **extra
             )
             seconds = time.perf_counter() - t0
+            grid = {"field_upsample": r.parameters["field_upsample"]}
             err = errors(r.phase, r.attenuation, phase, attenuation, background)
             rows.append(
                 {
@@ -188,6 +198,64 @@ def scene_rows() -> list[dict]:
                 }
             )
             print(rows[-1], flush=True)
+    return rows
+
+
+def alpha_rule_outcome(parameters: dict) -> str:
+    """What the alpha rule did in a retrieval: "lowered" (Im(alpha) under the default, the
+    model probe letting it stand or not asked), "kept default" (the probe kept it), or
+    "not lowered" (S at or above the rule's limit)."""
+    if parameters.get("alpha_rule_kept_default"):
+        return "kept default"
+    return "lowered" if complex(parameters["alpha"]).imag < solver.DEFAULT_ALPHA.imag else "not lowered"
+
+
+def random_rows(scenes=range(80)) -> list[dict]:
+    """exp(psi) on the field grid, and on the detector grid where the field grid is finer, on
+    ``benchmarks.random_scenes``' scenes (PWF, calibrated coherence, every default)."""
+    from benchmarks.random_scenes import _method_options, draw_scene
+    from benchmarks.stability import errors
+
+    rows = []
+    for i in scenes:
+        setup, sim, background = draw_scene(i)
+        grid = {}  # the detector-grid run on the field run's grid, given: "auto" keeps coarse pixels on the field
+        for where in ("field", "detector"):
+            t0 = time.perf_counter()
+            try:
+                r = retrieve_projection(
+                    sim.sample,
+                    sim.reference,
+                    **sim.geometry(),
+                    background_mask=background,
+                    sample_field_grid=where,
+                    **grid,
+                    **_method_options("pwf", setup),
+                )
+            except ValueError:
+                break  # refused (random_scenes records why); either grid refuses alike
+            err = errors(r.phase, r.attenuation, sim.phase, sim.attenuation, background)
+            rows.append(
+                {
+                    "scene": i,
+                    "shape": f"{setup.shape[0]}x{setup.shape[1]}",
+                    "sample_field_grid": where,
+                    "field_grid": r.parameters["field_upsample"],
+                    "alpha": r.parameters["alpha"],
+                    "alpha_rule": alpha_rule_outcome(r.parameters),
+                    "phase_sensitivity": r.parameters.get("phase_sensitivity", np.nan),
+                    "diffuser_model": r.parameters["diffuser_model"],
+                    "phase_error": err["phase_error"],
+                    "phase_gain": err["phase_gain"],
+                    "iterations": int(r.iterations),
+                    "converged": bool(r.converged),
+                    "seconds": time.perf_counter() - t0,
+                }
+            )
+            print(rows[-1], flush=True)
+            if float(r.parameters["field_upsample"]) == 1:
+                break  # one grid: exp(psi) on the detector grid is the same model
+            grid = {"field_upsample": r.parameters["field_upsample"]}
     return rows
 
 
@@ -214,8 +282,65 @@ def cost_rows() -> list[dict]:
     return rows
 
 
+def random_pairs(rows: list[dict]) -> list[tuple[dict, dict]]:
+    """(field-grid row, detector-grid row) per random scene that ran on both."""
+    det = {r["scene"]: r for r in rows if r["sample_field_grid"] == "detector"}
+    return [(r, det[r["scene"]]) for r in rows if r["sample_field_grid"] == "field" and r["scene"] in det]
+
+
+def random_lines(rows: list[dict]) -> list[str]:
+    """The random scenes' section: a summary by what the alpha rule did, then each pair."""
+    from benchmarks.stability import PHASE_ERROR_THRESHOLD as limit
+
+    pairs = random_pairs(rows)
+    lines = [
+        "",
+        "exp(psi) on either grid on the random geometries (`--part random`: `benchmarks.random_scenes`' 80",
+        f"scenes, PWF, calibrated coherence, every default; {len(pairs)} of {len({r['scene'] for r in rows})} "
+        "took a finer field grid and ran again with exp(psi) on the detector grid). Holds: phase error under "
+        f"{limit}; better / worse: the detector grid's error lower / higher by more than 0.01; wall time: the "
+        "group's retrievals summed, one run, 2 cores.",
+        "",
+        "| alpha rule | scenes | holds (field / detector grid) | median error (field / detector) "
+        "| detector better / worse | iterations (field / detector, mean) | wall time, detector / field |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for outcome in ("lowered", "kept default", "not lowered"):
+        group = [(f, d) for f, d in pairs if f["alpha_rule"] == outcome]
+        if not group:
+            continue
+        ef, ed = (np.array([p[k]["phase_error"] for p in group]) for k in (0, 1))
+        itf, itd = (np.mean([p[k]["iterations"] for p in group]) for k in (0, 1))
+        wall = sum(d["seconds"] for _, d in group) / sum(f["seconds"] for f, _ in group)
+        lines.append(
+            f"| {outcome} | {len(group)} | {(ef < limit).sum()} / {(ed < limit).sum()} "
+            f"| {np.median(ef):.3f} / {np.median(ed):.3f} | {(ed < ef - 0.01).sum()} / {(ed > ef + 0.01).sum()} "
+            f"| {itf:.0f} / {itd:.0f} | {wall:.2f} |"
+        )
+    lines += [
+        "",
+        "| scene | frame | S | alpha rule | field grid | diffuser | phase error (field / detector) "
+        "| phase gain (field / detector) | iterations (field / detector) |",
+        "|---:|---|---:|---|---:|---|---:|---:|---:|",
+    ]
+    cap = {True: "", False: " (cap)"}
+    lines += [
+        f"| {f['scene']} | {f['shape']} | {f['phase_sensitivity']:.2g} | {f['alpha_rule']} | {f['field_grid']:g}x "
+        f"| {f['diffuser_model']} | {f['phase_error']:.3f} / {d['phase_error']:.3f} "
+        f"| {f['phase_gain']:.3f} / {d['phase_gain']:.3f} "
+        f"| {f['iterations']}{cap[f['converged']]} / {d['iterations']}{cap[d['converged']]} |"
+        for f, d in pairs
+    ]
+    return lines
+
+
 def write_markdown(
-    acc: list[dict], cost: list[dict], path: str, rod: list[dict] | None = None, scenes: list[dict] | None = None
+    acc: list[dict],
+    cost: list[dict],
+    path: str,
+    rod: list[dict] | None = None,
+    scenes: list[dict] | None = None,
+    random: list[dict] | None = None,
 ) -> None:
     lines = [
         "# The field grid for an aliasing diffuser",
@@ -266,6 +391,8 @@ def write_markdown(
             f"| {r['iterations']}{'' if r['converged'] else ' (cap)'} | {r['seconds']:.1f} |"
             for r in scenes
         ]
+    if random:
+        lines += random_lines(random)
     lines += [
         "",
         "One iteration (one FFT thread), in FFTs of the padded detector grid:",
@@ -294,14 +421,19 @@ def main() -> None:
     ap.add_argument(
         "--part",
         default="all",
-        choices=["all", "cost", "detector", "scenes"],
+        choices=["all", "cost", "detector", "scenes", "random", "report"],
         help="cost: re-time the iterations alone, keeping the accuracy rows of OUT/field_grid.csv; detector: "
         "add the rows of exp(psi) on the detector grid to them and re-run the rod; scenes: exp(psi) on either "
-        "grid across the geometry sweep's field-grid scenes and the strip, keeping every other row",
+        "grid across the geometry sweep's field-grid scenes and the strip, keeping every other row; random: "
+        "exp(psi) on either grid on the 80 random geometries, keeping every other row; report: re-write "
+        "field_grid.md from the csv files, running nothing",
     )
     args = ap.parse_args()
-    if args.part == "scenes":
-        write_rows_csv(args.out, "field_grid_scenes.csv", scene_rows())
+    if args.part in ("scenes", "random", "report"):
+        if args.part == "scenes":
+            write_rows_csv(args.out, "field_grid_scenes.csv", scene_rows())
+        elif args.part == "random":
+            write_rows_csv(args.out, "field_grid_random.csv", random_rows())
         acc = read_rows_csv(args.out, "field_grid.csv")
     elif args.part == "all":
         acc = accuracy_rows()
@@ -315,14 +447,17 @@ def main() -> None:
         write_rows_csv(args.out, "field_grid_rod.csv", rod_rows())
     if args.part == "all":
         write_rows_csv(args.out, "field_grid_scenes.csv", scene_rows())
-    rod, scenes = (_kept(args.out, f"field_grid_{part}.csv") for part in ("rod", "scenes"))
+        write_rows_csv(args.out, "field_grid_random.csv", random_rows())
+    rod, scenes, random = (_kept(args.out, f"field_grid_{part}.csv") for part in ("rod", "scenes", "random"))
     cost = cost_rows() if args.part in ("all", "cost") else read_rows_csv(args.out, "field_grid_cost.csv")
     write_rows_csv(args.out, "field_grid_cost.csv", cost)
-    write_markdown(acc, cost, f"{args.out}/field_grid.md", rod, scenes)
+    write_markdown(acc, cost, f"{args.out}/field_grid.md", rod, scenes, random)
     kept_rows = {
         "cost": "the accuracy rows",
         "detector": "the accuracy rows of exp(psi) on the field grid",
         "scenes": "every table but the scenes' (the detector-grid rows from an earlier `--part detector`)",
+        "random": "every table but the random scenes'",
+        "report": "every table (re-written from the csv files)",
     }
     if args.part in kept_rows:
         with open(f"{args.out}/field_grid.md", "a") as f:

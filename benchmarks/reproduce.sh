@@ -37,7 +37,7 @@
 #   probe_iterations.* ~25 min: "auto"'s diffuser probe at 10 / 20 / 40 iterations on the random scenes and strips
 #   bench_fbp_cpu.*    ~5 min: gridding FBP against the backprojector, 2560 px x 801 angles
 #   bench_per_scan_cpu.* ~3 min: calibration, diffuser fit and model build against one retrieval
-#   field_grid.*       ~20 min: phase gain and iteration cost of the field grid 1x-2x on P3000 scenes, exp(psi) on either grid
+#   field_grid.*       ~80 min: phase gain and iteration cost of the field grid 1x-2x on P3000 scenes, exp(psi) on either grid (also on the 80 random geometries)
 #   fft_lengths.*      ~12 min: an iteration on scipy's fast FFT lengths against fast_len's, 256^2 to 2160 x 2560
 #                      (fft_lengths_sizes.*: --part sizes, ~6 min: 2-D transforms by side, the rules weighed)
 #   paper_figures.*    ~1.5 min: the paper's Fig. 2 and Fig. 3 on simulated scenes, PWF beside LCS K=12

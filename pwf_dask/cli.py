@@ -412,7 +412,7 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
         choices=["field", "detector"],
         help="pwf on a finer field grid: where exp(psi) is formed, on that grid (default) or on the detector grid "
         "(6 instead of 10 of its FFTs per iteration, 1.1-1.3x faster on the 1.5x grid; phase error 0-20 %% "
-        "higher on P3000 scenes, 2x at coarse pixels: docs/methods.md)",
+        "higher on P3000 scenes; with --field-upsample auto, coarse pixels keep it on the field grid: docs/methods.md)",
     )
     p.add_argument(
         "--coherence-method",

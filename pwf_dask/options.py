@@ -70,7 +70,9 @@ class RetrievalOptions:
     field_upsample: int | float | str = "auto"
     #: exp(psi) on the field grid ("field") or on the detector grid, folded into P1 ("detector":
     #: 6 instead of 10 field-grid FFTs per iteration; phase error 0-20 % higher on P3000 scenes,
-    #: 2x at coarse pixels: docs/methods.md)
+    #: 2x at coarse pixels: docs/methods.md). Under field_upsample="auto" "detector" holds on
+    #: the aliasing diffuser's grid only: where the pixel asks for a grid, exp(psi) is formed on it
+    #: (retrieval.sample_field_grid_on)
     sample_field_grid: str = "field"
     # the diffuser estimate t_r
     diffuser_model: str = "auto"

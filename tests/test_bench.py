@@ -458,3 +458,36 @@ def test_upstream_distance_report_puts_each_selector_where_its_quantity_is_least
     # errors 0.110 / 0.070 mean over the seeds; the fit's residual least at 0 then at 50 mm
     assert "| P3000 | 50 | 0.110 | 0.070 | 0.080 | 0 / 50 | 0 / 0 | 50 / 50 |" in text
     assert "| P3000 | 50 | 1 | zero-phase |  |  | 1.000 |" in text
+
+
+def test_field_grid_random_report_splits_the_pairs_by_what_the_alpha_rule_did():
+    """benchmarks/field_grid.py's random scenes: only the scenes that ran on both grids are
+    paired, each group of the alpha rule's outcome counts its holding scenes and the detector
+    grid's wins and losses beyond 0.01, and a capped run is marked."""
+    from benchmarks.field_grid import alpha_rule_outcome, random_lines
+
+    def row(scene, where, error, rule, converged=True, grid=1.5):
+        return dict(
+            scene=scene, shape="64x80", sample_field_grid=where, field_grid=grid, alpha="0.1+0.01j",
+            alpha_rule=rule, phase_sensitivity=1e-3, diffuser_model="zero-phase", phase_error=error,
+            phase_gain=0.9, iterations=100 if converged else 2000, converged=converged,
+            seconds=1.0 if converged else 4.0,
+        )  # fmt: skip
+
+    rows = [
+        row(1, "field", 0.10, "lowered"),
+        row(1, "detector", 0.30, "lowered", converged=False),
+        row(2, "field", 0.20, "lowered"),
+        row(2, "detector", 0.15, "lowered"),
+        row(3, "field", 0.05, "not lowered", grid=1),  # one grid only: not paired
+    ]
+    text = "\n".join(random_lines(rows))
+    assert "2 of 3 took a finer field grid" in text
+    # errors 0.10 / 0.20 on the field grid, 0.30 / 0.15 on the detector grid: one better, one worse
+    assert "| lowered | 2 | 2 / 1 | 0.150 / 0.225 | 1 / 1 | 100 / 1050 | 2.50 |" in text
+    pair = "| 1 | 64x80 | 0.001 | lowered | 1.5x | zero-phase | 0.100 / 0.300 | 0.900 / 0.900 | 100 / 2000 (cap) |"
+    assert pair in text
+    assert "not lowered" not in text
+    assert alpha_rule_outcome({"alpha": "0.1+0.05j"}) == "not lowered"
+    assert alpha_rule_outcome({"alpha": "0.1+0.01j"}) == "lowered"
+    assert alpha_rule_outcome({"alpha": "0.1+0.05j", "alpha_rule_kept_default": True}) == "kept default"
