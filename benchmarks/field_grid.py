@@ -213,7 +213,7 @@ def alpha_rule_outcome(parameters: dict) -> str:
 def random_rows(scenes=range(80)) -> list[dict]:
     """exp(psi) on the field grid, and on the detector grid where the field grid is finer, on
     ``benchmarks.random_scenes``' scenes (PWF, calibrated coherence, every default)."""
-    from benchmarks.random_scenes import _method_options, draw_scene
+    from benchmarks.random_scenes import draw_scene, retrieve_scene
     from benchmarks.stability import errors
 
     rows = []
@@ -223,15 +223,7 @@ def random_rows(scenes=range(80)) -> list[dict]:
         for where in ("field", "detector"):
             t0 = time.perf_counter()
             try:
-                r = retrieve_projection(
-                    sim.sample,
-                    sim.reference,
-                    **sim.geometry(),
-                    background_mask=background,
-                    sample_field_grid=where,
-                    **grid,
-                    **_method_options("pwf", setup),
-                )
+                r = retrieve_scene(setup, sim, background, sample_field_grid=where, **grid)
             except ValueError:
                 break  # refused (random_scenes records why); either grid refuses alike
             err = errors(r.phase, r.attenuation, sim.phase, sim.attenuation, background)

@@ -87,6 +87,18 @@ def draw_scene(i: int):
     return setup, sim, np.abs(sim.phase) < 1e-3 * np.abs(sim.phase).max()
 
 
+def retrieve_scene(setup: SpeckleSetup, sim, background, method: str = "pwf", **options):
+    """:func:`retrieve_projection` on a drawn scene (:func:`draw_scene`) with ``method``'s
+    options and ``options`` over them."""
+    return retrieve_projection(
+        sim.sample,
+        sim.reference,
+        **sim.geometry(),
+        background_mask=background,
+        **{**_method_options(method, setup), **options},
+    )
+
+
 def scene_row(i: int, methods: tuple[str, ...] = METHODS) -> list[dict]:
     """The rows of scene ``i``: one per method."""
     setup, sim, background = draw_scene(i)
@@ -116,13 +128,7 @@ def scene_row(i: int, methods: tuple[str, ...] = METHODS) -> list[dict]:
         row = {**scene, "method": method, "refused": ""}
         t0 = time.perf_counter()
         try:
-            res = retrieve_projection(
-                sim.sample,
-                sim.reference,
-                **sim.geometry(),
-                background_mask=background,
-                **_method_options(method, setup),
-            )
+            res = retrieve_scene(setup, sim, background, method)
         except ValueError as exc:
             row.update(refused=str(exc).split(";")[0], phase_error=np.nan, phase_gain=np.nan, iterations=0)
         else:
