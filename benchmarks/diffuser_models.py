@@ -138,10 +138,18 @@ def _alpha_guard_sentence(rows: list[dict]) -> str:
     if not checked:
         return "The alpha rule's model probe ran in no scene."
     kept = [r for r in checked if _kept_default(r)]
+    auto = [str(r["scene"]) for r in kept if r["auto"] == "single-material"]
+    scenes = ("scenes " if len(auto) > 1 else "scene ") + ", ".join(auto)
+    took = (
+        f'In {len(auto)} of them ({scenes}) `"auto"` had taken the fit by the grains\' absorption: it takes '
+        'zero phase at the rule\'s alpha instead (since session 101; the `"auto"` row).'
+        if auto
+        else '`"auto"` had taken the fit by the grains\' absorption in none of them.'
+    )
     return (
         f"The alpha rule's model probe ran in {len(checked)} scenes (S under 0.015, the single-material fit): "
         f"in {len(kept)} the fit misfit the sample more than zero phase (probe residual ratio over 1) and kept "
-        "the default alpha, marked (default alpha) below."
+        f"the default alpha, marked (default alpha) below. {took}"
     )
 
 

@@ -429,7 +429,9 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
         help="diffuser estimate from the reference: one material fitted, the paper's zero phase, or auto "
         "(default): one material where the diffuser absorbs at least 5 /mm (silicon carbide up to ~11 keV), "
         "else zero phase unless a 20-iteration probe of both on each position's middle projection leaves "
-        "the one material under half of zero phase's residual",
+        "the one material under half of zero phase's residual; where --alpha sensitivity lowers alpha and "
+        "the one material then misfits more than zero phase, auto takes zero phase (a named one material "
+        "keeps the default alpha instead)",
     )
     p.add_argument(
         "--diffuser-upstream-m",

@@ -362,7 +362,8 @@ def choose_diffuser(
     **keywords,
 ) -> DiffuserChoice:
     """The diffuser model and t_r that :func:`retrieve_projection` would take on this pair with
-    these options, ``"auto"``'s probe included (:func:`probes_diffuser`): a scan chooses once
+    these options, ``"auto"``'s probe included (:func:`probes_diffuser`), and its giving up the
+    fit for zero phase under the alpha rule (:func:`alpha_rule_gives_up`): a scan chooses once
     per diffuser position and passes ``diffuser=choice.transmission`` with
     ``diffuser_model=choice.model`` to every projection of it.
 
@@ -390,6 +391,10 @@ def choose_diffuser(
     t = _transmission(pair.ref, None, opts, geometry, pair.coherence, pair.y.shape, pair.fft)
     if probes_diffuser(pair.requested, opts.diffuser_model):
         return _probed_diffuser(t, pair, opts, geometry)
+    guarded, residuals = _guarded_alpha(opts, pair, t, None, geometry)
+    if guarded.diffuser_model != opts.diffuser_model:  # "auto" gave the fit up for zero phase
+        t = _transmission(pair.ref, None, guarded, geometry, pair.coherence, pair.y.shape, pair.fft)
+        return DiffuserChoice(guarded.diffuser_model, t, None, residuals)
     return DiffuserChoice(opts.diffuser_model, t, kappa, {})
 
 
@@ -714,7 +719,10 @@ def retrieve_projection(
         opts = replace(opts, diffuser_model=probe.model)
     guard = None
     if diffuser is None:  # a given diffuser is used as given, unprobed
+        fitted = opts.diffuser_model
         opts, guard = _guarded_alpha(opts, pair, t, probe, geometry)
+        if opts.diffuser_model != fitted:  # "auto" gave the fit up for zero phase
+            t, kappa = _transmission(ref, None, opts, geometry, coherence, y.shape, fft), None
     if moved:
         t = calibration.shift_transmission(t, drift, fft=fft)
     build = _model_builder(t, y.shape, geometry, coherence, opts, excluded, fft)
@@ -765,7 +773,7 @@ def retrieve_projection(
         )
         # what the background fit took from the solver's psi: a scan's warm start adds it back
         | {"background_planes": planes}
-        | _alpha_rule_record(pair.phase_sensitivity, guard),
+        | _alpha_rule_record(pair.phase_sensitivity, guard, pair.requested),
         background=mask,
     )
     return _with_sensitivity(
@@ -773,16 +781,21 @@ def retrieve_projection(
     )
 
 
-def _alpha_rule_record(phase_sensitivity: float | None, guard: dict | None = None) -> dict:
+def _alpha_rule_record(phase_sensitivity: float | None, guard: dict | None = None, requested: str = "auto") -> dict:
     """The rule's entries where ``alpha="sensitivity"`` set alpha (:func:`_resolved_alpha`):
     the sensitivity, and where the diffuser models' probe decided whether its lower Im(alpha)
-    stands (:func:`_guarded_alpha`), their residual ratio and whether alpha stayed the default."""
+    stands with the single-material fit (:func:`_guarded_alpha`), their residual ratio and what
+    gave way where it did not (:func:`alpha_rule_gives_up` of ``diffuser_model=requested``):
+    the alpha, kept at the default, or ``"auto"``'s fit, for zero phase."""
     if phase_sensitivity is None:
         return {}
     record = {"alpha_rule": "sensitivity", "phase_sensitivity": phase_sensitivity}
     if guard is not None:
-        record["alpha_rule_model_ratio"] = model_probe_ratio(guard)
-        record["alpha_rule_kept_default"] = not alpha_rule_holds(model_probe_ratio(guard))
+        ratio = model_probe_ratio(guard)
+        gave_up = None if alpha_rule_holds(ratio) else alpha_rule_gives_up(requested)
+        record["alpha_rule_model_ratio"] = ratio
+        record["alpha_rule_kept_default"] = gave_up == "alpha"
+        record["alpha_rule_took_zero_phase"] = gave_up == "model"
     return record
 
 
@@ -1075,17 +1088,32 @@ def model_probe_ratio(residuals_pct: dict | None) -> float | None:
 def _guarded_alpha(
     opts: RetrievalOptions, pair: _Pair, t, probe: DiffuserChoice | None, geometry: Geometry
 ) -> tuple[RetrievalOptions, dict | None]:
-    """The options with the rule's alpha, or :data:`pwf_dask.pwf.solver.DEFAULT_ALPHA` where
-    the single-material fit ``t`` does not earn the rule's lower Im(alpha)
-    (:func:`alpha_rule_holds`), and the residuals that decided (None where nothing did: the
-    rule's alpha not lowered, zero phase). ``"auto"``'s probe, where it ran, decides: it took
-    the fit for a residual under half zero phase's."""
+    """The options with the rule's alpha and the single-material fit ``t`` where the fit earns
+    the rule's lower Im(alpha) (:func:`alpha_rule_holds`); where it does not, what gives way
+    (:func:`alpha_rule_gives_up`): under ``"auto"`` the fit, for zero phase at the rule's alpha;
+    with a fit the user named, the alpha, :data:`pwf_dask.pwf.solver.DEFAULT_ALPHA`. Also the
+    residuals that decided (None where nothing did: the rule's alpha not lowered, zero phase).
+    ``"auto"``'s probe, where it ran, decides: it took the fit for a residual under half zero
+    phase's."""
     if not guards_alpha_rule(pair.phase_sensitivity, opts.diffuser_model):
         return opts, None
     residuals = probe.residuals_pct if probe else _probe_residuals(pair, opts, geometry, {"single-material": t})[0]
     if alpha_rule_holds(model_probe_ratio(residuals)):
         return opts, residuals
+    if alpha_rule_gives_up(pair.requested) == "model":
+        return replace(opts, diffuser_model="zero-phase"), residuals
     return replace(opts, alpha=solver.DEFAULT_ALPHA), residuals
+
+
+def alpha_rule_gives_up(requested: str) -> str:
+    """What gives way where the single-material fit does not earn the rule's lower Im(alpha)
+    (:func:`alpha_rule_holds` false) with ``diffuser_model=requested``: ``"model"`` under
+    ``"auto"``, whose absorption rule took the fit unprobed (zero phase is then taken, at the
+    rule's alpha: on the 7 such random scenes, session 101, phase error 0.24 -> 0.13,
+    0.33 -> 0.24, 0.63 -> 0.41, 0.69 -> 0.50 and 0.39 -> 0.34 with calibrated lengths,
+    0.23 -> 0.13 and 0.32 -> 0.22 with the true ones; docs/validation.md, "The alpha rule's
+    model probe"); ``"alpha"`` for a fit the user named, kept at the default alpha."""
+    return "model" if requested == "auto" else "alpha"
 
 
 def _checked_bad_pixels(bad_pixels, frame_shape: tuple[int, int], xp):

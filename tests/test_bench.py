@@ -428,6 +428,11 @@ def test_diffuser_models_report_scores_each_rule_and_names_each_scenes_sensitivi
     assert 'alpha="sensitivity"' in text
     assert "model probe ran in 2 scenes" in text and "in 1 the fit misfit the sample more" in text
     assert "(default alpha)" in listed[0] and "(default alpha)" not in listed[1]
+    assert "had taken the fit by the grains' absorption in none of them" in text
+    rows[2].update(sm_alpha="0.1+0.05j", sm_model_ratio=1.1)  # "auto"'s fit, given up since session 101
+    write_report(rows, tmp_path, "test device", "diffuser_models")
+    text = (tmp_path / "diffuser_models.md").read_text()
+    assert 'In 1 of them (scene 2) `"auto"` had taken the fit' in text and "in 2 the fit misfit" in text
 
 
 def test_upstream_distance_report_puts_each_selector_where_its_quantity_is_least(tmp_path):

@@ -72,8 +72,11 @@ def test_stacks_are_repaired_frame_by_frame(sim):
 
 @pytest.mark.slow
 def test_pwf_with_zingers_matches_the_clean_result(sim, small_scene_result):
-    """65 zingers of 10x the mean in each image (1e-3 of the pixels): 0.99 relative phase error
-    with every pixel fitted, the clean image's error when they are left out (docs/validation.md)."""
+    """65 zingers of 10x the mean in each image (1e-3 of the pixels): the clean image's error
+    when they are left out (docs/validation.md); 2.7x it (0.177 for 0.067) with every pixel
+    fitted after 300 iterations. The zingers lower the reference's phase sensitivity under the
+    alpha rule's limit, and "auto" then gives the single-material fit up for zero phase (since
+    session 101; the fit reads 0.476 there)."""
     clean = relative_phase_error(small_scene_result, sim)
     sample, truth_s = with_defects(sim.sample, 3, 65, 0, amplitude=10.0)
     reference, truth_r = with_defects(sim.reference, 4, 65, 0, amplitude=10.0)
@@ -85,7 +88,7 @@ def test_pwf_with_zingers_matches_the_clean_result(sim, small_scene_result):
     assert res.residual_rmse < 1.2 * 100 * np.sqrt(np.mean(sim.sample) / sim.photons) / np.mean(sim.reference)
     raw = retrieve_projection(sample, reference, **kwargs(sim, outlier_sigma=0, max_iter=300))
     assert raw.parameters["outlier_pixels"] == 0
-    assert relative_phase_error(raw, sim) > 3 * clean
+    assert relative_phase_error(raw, sim) > 2 * clean
 
 
 def test_off_is_the_model_without_it(sim):

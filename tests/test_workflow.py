@@ -815,7 +815,10 @@ def test_a_scan_checks_the_alpha_rules_lower_alpha_once_against_the_diffuser_mod
     the single-material fit, the scan probes both models once, on position 0's middle
     projection, records their residual ratio and keeps the default alpha where the fit misfits
     more (forced each way here through the bound); a resumed run reads the ratio back and probes
-    nothing; zero phase is never probed."""
+    nothing; zero phase is never probed. Under "auto", which took the fit by the grains'
+    absorption, the fit gives way instead: zero phase at the rule's alpha, on every position and
+    again on resume; a store made under "auto" at the default alpha (before session 101) resumes
+    as made."""
     from pwf_dask import retrieval
 
     monkeypatch.setattr(workflow, "scan_phase_sensitivity", lambda *a, **k: 1e-4)
@@ -846,6 +849,23 @@ def test_a_scan_checks_the_alpha_rules_lower_alpha_once_against_the_diffuser_mod
     workflow.retrieve_scan(tiny_scan, zero, **dict(single, diffuser_model="zero-phase"))
     attrs = xr.open_zarr(zero).attrs
     assert len(calls) == 2 and attrs["alpha_rule_model_ratio"] == "n/a" and attrs["alpha"] == lowered
+    # "auto" that took the fit by its absorption (kappa 0.5 here) gives the fit up, not the alpha
+    auto = tmp_path / "auto.zarr"
+    absorbing = dict(single, diffuser_model="auto", diffuser_beta_over_delta=0.5)
+    for _ in range(2):  # the second resumes: the stored ratio, the same choice
+        workflow._DIFFUSERS.clear()
+        workflow.retrieve_scan(tiny_scan, auto, **absorbing)
+        attrs = xr.open_zarr(auto).attrs
+        assert attrs["alpha"] == lowered and attrs["diffuser_model_chosen"] == "zero-phase"
+        assert json.loads(attrs["diffuser_model_per_position"]) == {"0": "zero-phase", "1": "zero-phase"}
+    assert len(calls) == 3
+    assert "with the zero-phase diffuser: the single-material fit misfits" in capsys.readouterr().err
+    made_before = zarr.open_group(str(auto), mode="r+", use_consolidated=False)
+    made_before.attrs["alpha"] = "0.1+0.05j"  # "auto" at the default alpha, before session 101
+    made = json.loads(made_before.attrs["pwf_dask_parameters"])
+    made_before.attrs["pwf_dask_parameters"] = json.dumps({**made, "alpha": "0.1+0.05j"})
+    workflow.retrieve_scan(tiny_scan, auto, **absorbing)  # resumes as made, unprobed
+    assert len(calls) == 3 and xr.open_zarr(auto).attrs["alpha"] == "0.1+0.05j"
 
 
 def test_the_store_records_the_diffuser_model_auto_chose():

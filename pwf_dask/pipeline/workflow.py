@@ -431,25 +431,35 @@ def choose_scan_alpha(scan_path, recon_path, options: dict, device: str, coheren
 def guarded_scan_alpha(frames, recon_path, phase_s: float, options: dict, device: str, coherence):
     """alpha="sensitivity" for a scan (``frames`` as :func:`_scan_frames` opened it): the rule's
     alpha for the scan's phase sensitivity (:func:`pwf_dask.pwf.solver.sensitivity_alpha`), one
-    for every projection, kept at
-    :data:`pwf_dask.pwf.solver.DEFAULT_ALPHA` where the rule lowered it and the single-material
-    diffuser fit misfits position 0's projection at the middle angle more than zero phase
-    (:func:`pwf_dask.retrieval.alpha_rule_holds`, checked once as a projection checks it).
-    Returns (alpha, the probe's residual ratio or "n/a" where nothing was probed). A store that
-    already probed keeps its ratio, so a resumed run does not probe again; one made by the rule
-    before the probe (session 98) keeps its alpha, so that it resumes."""
+    for every projection. Where the rule lowered it and the single-material diffuser fit misfits
+    position 0's projection at the middle angle more than zero phase
+    (:func:`pwf_dask.retrieval.alpha_rule_holds`, checked once as a projection checks it), what
+    gives way is a projection's (:func:`pwf_dask.retrieval.alpha_rule_gives_up`): under
+    ``"auto"`` the fit, for zero phase at the rule's alpha; a fit the user named keeps
+    :data:`pwf_dask.pwf.solver.DEFAULT_ALPHA`.
+    Returns (alpha, the probe's residual ratio or "n/a" where nothing was probed, "zero-phase"
+    where ``"auto"`` gave up the fit, else None). A store that already probed keeps its ratio,
+    so a resumed run does not probe again; one made by the rule before the probe (session 98),
+    or that kept the default alpha under ``"auto"`` before it gave up the fit instead (session
+    101), keeps its alpha, so that it resumes."""
     from pwf_dask import retrieval
 
     alpha = sensitivity_alpha(phase_s)
     if not retrieval.guards_alpha_rule(phase_s, _absorption_model(frames[0].attrs, options)):
-        return alpha, "n/a"
+        return alpha, "n/a", None
     stored = _stored_alpha_rule(recon_path)
     if stored.get("alpha_rule") == "sensitivity" and "alpha_rule_model_ratio" not in stored:
-        return complex(str(stored["alpha"]).replace(" ", "")), "n/a"
+        return complex(str(stored["alpha"]).replace(" ", "")), "n/a", None
     ratio = stored.get("alpha_rule_model_ratio")
     if not isinstance(ratio, float):
         ratio = retrieval.model_probe_ratio(_probed_models(frames, options, device, coherence[0]))
-    return (alpha if retrieval.alpha_rule_holds(ratio) else DEFAULT_ALPHA), ratio
+    if retrieval.alpha_rule_holds(ratio):
+        return alpha, ratio, None
+    if stored.get("alpha") == str(DEFAULT_ALPHA).strip("()"):  # made before "auto" gave the fit up
+        return DEFAULT_ALPHA, ratio, None
+    if retrieval.alpha_rule_gives_up(options.get("diffuser_model", DEFAULTS.diffuser_model)) == "model":
+        return alpha, ratio, "zero-phase"
+    return DEFAULT_ALPHA, ratio, None
 
 
 def _stored_alpha_rule(recon_path) -> dict:
@@ -603,7 +613,7 @@ def retrieve_scan(
     if fits:
         # the tasks are given the lengths: they must know whether the pixel's blur is in them
         options["coherence_includes_pixel_blur"] = fits[0][0].includes_pixel_blur
-    alpha_rule, alpha_trials, phase_s, model_ratio = "given", "n/a", "n/a", "n/a"
+    alpha_rule, alpha_trials, phase_s, model_ratio, instead = "given", "n/a", "n/a", "n/a", None
     if method == "pwf":
         phase_s = scan_phase_sensitivity(g, info, geometry, flat, dark, corrected, outlier_sigma)
     if alpha_c == "discrepancy" and method == "pwf":
@@ -614,7 +624,7 @@ def retrieve_scan(
     elif alpha_c == "sensitivity" and method == "pwf":
         probe = dict(precision=precision, outlier_sigma=outlier_sigma, **options)
         frames = (g, flat, dark, corrected)  # as opened above: flat and dark read once
-        alpha_c, model_ratio = guarded_scan_alpha(frames, recon_path, phase_s, probe, device, coherence)
+        alpha_c, model_ratio, instead = guarded_scan_alpha(frames, recon_path, phase_s, probe, device, coherence)
         alpha_rule = "sensitivity"
     elif alpha_c in ("discrepancy", "sensitivity"):  # the speckle-tracking baselines have no alpha
         alpha_c, alpha_rule = PAPER_ALPHA, "n/a"
@@ -644,6 +654,8 @@ def retrieve_scan(
     }
     opts = dict(method=method, max_iter=max_iter, tol=tol, gamma=gamma, alpha=alpha_c, step=step)
     opts.update(precision=precision, outlier_sigma=outlier_sigma, **options)
+    if instead:  # "auto" gave up the single-material fit for the alpha rule (guarded_scan_alpha)
+        params["diffuser_model_chosen"] = opts["diffuser_model"] = instead
     own = runner is None
     runner = runner or Runner(scheduler)  # a bad scheduler fails here, before anything is written
     threads = runner.workers
@@ -817,6 +829,8 @@ def _alpha_rule_line(params: dict) -> str:
 
     if alpha_rule_holds(ratio):
         return f"{line} (the single-material diffuser fit's probe residual {ratio:.3g}x zero phase's)"
+    if params.get("diffuser_model_chosen") == "zero-phase":
+        return f"{line}, with the zero-phase diffuser: the single-material fit misfits the sample {ratio:.3g}x as much"
     return (
         f"{line}: the default, not lowered, as the single-material diffuser fit misfits the sample"
         f" {ratio:.3g}x as much as zero phase"
