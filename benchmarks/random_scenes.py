@@ -21,8 +21,11 @@ autocorrelation, pixels) and the reference's visibility (rms / mean); and for PW
 check of the data measured (``speckle_shift_over_grain`` of the retrieved phase,
 ``speckle_visibility_measured``, ``sample_misfit``, ``flagged``: benchmarks/sensitivity_check.py).
 
-    python -m benchmarks.random_scenes [--scenes 80] [--discrepancy] [--out benchmarks/results]
+    python -m benchmarks.random_scenes [--scenes 80] [--first 0] [--discrepancy] [--out benchmarks/results]
 
+``--first N`` runs scenes N to N + scenes - 1, drawn from the same ranges, and names its files
+``random_scenes_<N>-<last>``: scenes 160-239 are session 102's held-out set, run once after
+every choice they check had been made (docs/validation.md, "A fresh held-out set").
 ``--discrepancy`` adds PWF with ``alpha="discrepancy"`` and a line comparing it with the
 default alpha (2.3x PWF's time).
 
@@ -33,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -162,11 +166,17 @@ def _median_error(rows: list[dict]) -> str:
     return f"{np.median(values):.3f}" if values else "-"
 
 
-def write_report(rows: list[dict], out_dir: str | Path, device: str) -> None:
+def results_name(first: int, scenes: int) -> str:
+    """The file stem of scenes ``first`` to ``first + scenes - 1``: ``random_scenes`` from 0."""
+    return "random_scenes" if first == 0 else f"random_scenes_{first}-{first + scenes - 1}"
+
+
+def write_report(rows: list[dict], out_dir: str | Path, device: str, name: str = "random_scenes") -> None:
     out = Path(out_dir)
-    n_scenes = len({r["scene"] for r in rows})
+    ids = sorted({r["scene"] for r in rows})
+    span = f", scenes {ids[0]}-{ids[-1]}" if ids and ids[0] else ""
     lines = [
-        f"# PWF and UMPA on {n_scenes} random geometries ({device})",
+        f"# PWF and UMPA on {len(ids)} random geometries ({device}{span})",
         "",
         "`python -m benchmarks.random_scenes`: each scene draws every parameter at once (module docstring:",
         "8-30 keV, 0.3-3 µm pixels, L1 0-10 mm or the diffuser 1-20 mm upstream, L2 5-200 mm, coherence",
@@ -219,7 +229,7 @@ def write_report(rows: list[dict], out_dir: str | Path, device: str) -> None:
             f"| {cell(s)} | {cell(by['pwf_true_lengths'])} | {cell(by['umpa'])} |"
         )
     lines += _discrepancy_lines(rows)
-    (out / "random_scenes.md").write_text("\n".join(lines) + "\n")
+    (out / f"{name}.md").write_text("\n".join(lines) + "\n")
 
 
 def _discrepancy_lines(rows: list[dict]) -> list[str]:
@@ -275,18 +285,25 @@ def plot(rows: list[dict], path: str | Path) -> None:
 def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=80)
+    ap.add_argument("--first", type=int, default=0, help="the first scene (0: random_scenes.*; else a set of its own)")
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--discrepancy", action="store_true", help="also PWF with alpha='discrepancy'")
     args = ap.parse_args(argv)
     methods = METHODS + ((DISCREPANCY,) if args.discrepancy else ())
-    return run_and_report(args.scenes, methods, args.out, "random_scenes", write_report, plot)
+    name = results_name(args.first, args.scenes)
+    report = partial(write_report, name=name)
+    return run_and_report(range(args.first, args.first + args.scenes), methods, args.out, name, report, plot)
 
 
-def run_and_report(scenes: int, methods: tuple[str, ...], out_dir, name: str, report, figure) -> list[dict]:
-    """Scenes 0 to ``scenes`` - 1 by every method, one progress line a scene, then
-    ``name``.csv, ``report(rows, out, device)`` and ``figure(rows, name.png)``."""
-    rows = []
-    for i in range(scenes):
+def run_and_report(
+    scenes: range, methods: tuple[str, ...], out_dir, name: str, report, figure, kept: list[dict] = ()
+) -> list[dict]:
+    """``scenes`` by every method, one progress line a scene, then ``name``.csv,
+    ``report(rows, out, device)`` and ``figure(rows, name.png)``. ``kept``: rows of earlier
+    runs, reported with the new ones; their scenes are not run again."""
+    rows = list(kept)
+    done = {r["scene"] for r in rows}
+    for i in (i for i in scenes if i not in done):
         scene_rows = scene_row(i, methods)
         rows += scene_rows
         print(

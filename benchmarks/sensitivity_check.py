@@ -10,7 +10,10 @@ on the random geometries of :mod:`benchmarks.random_scenes` in three sets:
 - scenes 0-79, those of ``random_scenes.md``, where any shift limit of 0.015-0.04 flags no
   holding scene;
 - scenes 80-119, drawn from the same ranges and looked at while choosing;
-- scenes 120-159, never looked at before this benchmark ran: the held-out check;
+- scenes 120-159, never looked at before this benchmark ran: the held-out check of session 84;
+- scenes 160-239, session 102's held-out set: drawn from the same ranges and run once, after the
+  phase-sensitivity limit, the alpha rule, its model probe and session 101's way out had been
+  chosen on scenes 0-159 (``--add-scenes`` ran them beside the rows already committed);
 - the paper's optics (its 256^2 scene, P3000) at 16-30 keV on two diffuser draws, where the
   speckle fades and the phase shrinks together: the family that set the shift limit at 0.02
   (one draw holds at 0.022-0.028 from 21 to 23 keV), and from 26 keV (session 92) the check of
@@ -25,11 +28,12 @@ A scene holds where its relative phase error inside the sample stays below 0.25 
 ``random_scenes``). Reported per set: how many hold and fail, how many of each the warning
 flags, and the flagged and unflagged failures' gains.
 
-    python -m benchmarks.sensitivity_check [--scenes 160] [--out benchmarks/results] [--only-stability]
+    python -m benchmarks.sensitivity_check [--scenes 240] [--out benchmarks/results] [--only-stability | --add-scenes]
 
 Writes ``sensitivity_check.md``, ``.csv``, ``.png``, ``sensitivity_check_energies.csv`` and
-``sensitivity_check_stability.csv`` (about 20 min for 160 scenes and the sweep on 2 cores, 23 more
-for the map's 44 points; ``--only-stability`` runs those alone and reads the rest back).
+``sensitivity_check_stability.csv`` (about 33 min for scenes 0-159 and the sweep on 2 cores, about
+17 more for 160-239, 23 more for the map's 44 points; ``--only-stability`` runs those alone and
+reads the rest back; ``--add-scenes`` runs only the scenes missing from the rows in ``--out``).
 """
 
 from __future__ import annotations
@@ -53,6 +57,7 @@ SETS = (
     (0, 80, "0-79 (limits set here)"),
     (80, 120, "80-119 (seen while choosing)"),
     (120, 160, "120-159 (held out)"),
+    (160, 240, "160-239 (held out, session 102)"),
 )
 
 
@@ -242,7 +247,7 @@ def plot(rows: list[dict], path: str | Path) -> None:
 
     limits = SensitivityLimits()
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    for (lo, hi, name), marker in zip(SETS, "o^s"):
+    for (lo, hi, name), marker in zip(SETS, "o^sD"):
         pts = [r for r in rows if lo <= r["scene"] < hi and not r["refused"]]
         ax.scatter(
             [max(r["speckle_shift_over_grain"], 1e-4) for r in pts],
@@ -267,6 +272,15 @@ def plot(rows: list[dict], path: str | Path) -> None:
     plt.close(fig)
 
 
+def random_scenes_pwf_rows(out_dir: str | Path) -> list[dict]:
+    """PWF's rows of the held-out sets ``random_scenes --first N`` wrote to ``out_dir``
+    (``random_scenes_N-M.csv``): the same ``scene_row`` with every default that this check runs."""
+    rows = []
+    for path in sorted(Path(out_dir).glob("random_scenes_*-*.csv")):
+        rows += [r for r in read_rows_csv(out_dir, path.name) if r["method"] == "pwf"]
+    return rows
+
+
 def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=SETS[-1][1])
@@ -276,7 +290,19 @@ def main(argv=None) -> list[dict]:
         action="store_true",
         help="re-run only the stability map's points; the random scenes and the energy sweep are read back from --out",
     )
+    ap.add_argument(
+        "--add-scenes",
+        action="store_true",
+        help="run only the random scenes below --scenes that --out's rows lack (PWF's rows of a random_scenes_N-M.csv "
+        "there count: the same run); the rest is read back from --out",
+    )
     args = ap.parse_args(argv)
+    if args.add_scenes:
+        energies = read_rows_csv(args.out, "sensitivity_check_energies.csv")
+        stability = read_rows_csv(args.out, "sensitivity_check_stability.csv")
+        kept = read_rows_csv(args.out, "sensitivity_check.csv") + random_scenes_pwf_rows(args.out)
+        report = partial(write_report, energies=energies, stability=stability)
+        return run_and_report(range(args.scenes), ("pwf",), args.out, "sensitivity_check", report, plot, kept)
     stability = stability_rows()
     write_rows_csv(args.out, "sensitivity_check_stability.csv", stability)
     if args.only_stability:
@@ -287,7 +313,7 @@ def main(argv=None) -> list[dict]:
     energies = [energy_row(e, seed) for e in ENERGIES_KEV for seed in ENERGY_SEEDS]
     write_rows_csv(args.out, "sensitivity_check_energies.csv", energies)
     report = partial(write_report, energies=energies, stability=stability)
-    return run_and_report(args.scenes, ("pwf",), args.out, "sensitivity_check", report, plot)
+    return run_and_report(range(args.scenes), ("pwf",), args.out, "sensitivity_check", report, plot)
 
 
 if __name__ == "__main__":

@@ -166,6 +166,45 @@ def test_sensitivity_check_counts_each_set_apart_and_leaves_refusals_out():
     )
 
 
+def test_a_held_out_set_runs_beside_the_kept_rows_and_is_counted_apart(tmp_path, monkeypatch):
+    """``random_scenes --first N`` names its files by its scenes, and ``sensitivity_check
+    --add-scenes`` (``run_and_report`` with ``kept`` rows) runs only the scenes the kept rows
+    lack, reports both, and counts session 102's held-out scenes 160-239 as a set of their own."""
+    import benchmarks.random_scenes as random_scenes
+    from benchmarks.reporting import read_rows_csv
+    from benchmarks.sensitivity_check import summary_rows
+
+    assert random_scenes.results_name(0, 80) == "random_scenes"
+    assert random_scenes.results_name(160, 80) == "random_scenes_160-239"
+
+    def row(scene, error):
+        return {"scene": scene, "method": "pwf", "refused": "", "phase_error": error, "phase_gain": 1 - error}
+
+    ran = []
+    monkeypatch.setattr(random_scenes, "scene_row", lambda i, methods: ran.append(i) or [row(i, 0.1 * (i % 3))])
+    monkeypatch.setattr(random_scenes, "device_name", lambda xp: "test device")
+    reported = []
+    kept = [row(0, 0.2), row(1, 0.4)]
+    rows = random_scenes.run_and_report(
+        range(3),
+        ("pwf",),
+        tmp_path,
+        "check",
+        lambda rows, out, device: reported.append(len(rows)),
+        lambda *a: None,
+        kept,
+    )
+    assert ran == [2] and [r["scene"] for r in rows] == [0, 1, 2] and reported == [3]
+    assert [r["scene"] for r in read_rows_csv(tmp_path, "check.csv")] == [0, 1, 2]
+
+    def checked(scene, error, flagged):
+        return row(scene, error) | {"holds": error < 0.25, "flagged": flagged, "speckle_shift_over_grain": 0.1}
+
+    sets = summary_rows([checked(150, 0.1, False), checked(170, 0.1, True), checked(239, 0.9, False)])
+    assert [s["set"] for s in sets] == ["120-159 (held out)", "160-239 (held out, session 102)"]
+    assert (sets[1]["holds"], sets[1]["flagged_holds"], sets[1]["fails"]) == (1, 1, 1)
+
+
 def test_stability_points_carry_the_check_only_where_pwf_measured_it():
     """The stability map's rows carry PWF's own check (benchmarks/stability.py), NaN and
     unflagged for a method that does not measure it, and the check's table of the map's points

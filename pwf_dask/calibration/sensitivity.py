@@ -65,10 +65,12 @@ class SensitivityLimits:
     of scenes 0-79 where both hold; under the alpha rule (session 93) above all 43 such pairs of
     114, the largest 0.251, and 23 of the 47 failures the other limits miss lie above it).
     ``min_phase_sensitivity``: :func:`phase_sensitivity` of the reference, measured before any
-    fit (session 92): no random scene below 7.2e-5 holds (31 of 151 lie below 3e-5, every one
-    a failure, 7 of them unflagged by the other limits), and the paper's 256^2 scene still
-    holds at 28 keV (4.8e-5 and 5.2e-5 on two draws, looked at after the limit was chosen among
-    2e-5 to 7e-5) and fails at 30 keV (3.4e-5, flagged by the visibility).
+    fit (session 92): no random scene of 0-159 below 7.2e-5 holds (31 of 151 lie below 3e-5,
+    every one a failure, 7 of them unflagged by the other limits), and the paper's 256^2 scene
+    still holds at 28 keV (4.8e-5 and 5.2e-5 on two draws, looked at after the limit was chosen
+    among 2e-5 to 7e-5) and fails at 30 keV (3.4e-5, flagged by the visibility). Held-out
+    scenes 160-239 (session 102): 20 of 21 below 3e-5 fail; scene 160 holds at 2.95e-5 (error
+    0.12) and is the one holding scene of 113 the warning flags.
     """
 
     min_shift_over_grain: float = 0.02
