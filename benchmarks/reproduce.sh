@@ -14,6 +14,8 @@
 #   calibration_sweep.* ~1 min: the template fit against the Gaussian over 80 diffusers and geometries
 #   geometry_sweep.*   ~2 min: PWF on other energies, pixels, coherence lengths and distances
 #   random_scenes.*    ~30 min: PWF (calibrated, true lengths) and UMPA K=1 on 80 random geometries
+#                      (random_scenes_160-239.*: random-scenes-held-out, ~37 min: the held-out scenes 160-239,
+#                      then sensitivity_check --add-scenes takes their PWF rows)
 #   diffuser_models.*  ~30 min: both diffuser models and "auto"'s probe on the 80 random geometries
 #                      (diffuser_models_calibrated.*: --calibrated --scenes 40, ~14 min)
 #   frame_size.*       ~12 min: phase gain at 256^2-1024^2 and on wide 25 keV strips of PMMA rods
@@ -28,6 +30,7 @@
 #                      (cylinder_draws_why.*: --why, ~6 min: 8 diffuser draws, estimated and true t, noise-free;
 #                      cylinder_draws_1e3.*: at 1e3 ph/px, ~14 min; cylinder_draws_96rows.*: 96 rows, P3000, ~10 min)
 #   coherence_sensitivity.* ~12 min: phase gain against coherence-length error (0.7-1.3x), every other default
+#                      (coherence_sensitivity_1000ph.*, _100ph.*: coherence-sensitivity-low-dose, ~8 min)
 #   detector_psf.*     ~15 min: PWF (calibrated, given the blurred lengths) and UMPA K=1 under the detector's own blur
 #   upstream_distance.* ~15 min: an upstream diffuser (L1 = 0) at 0-100 mm, PWF at each assumed distance: what selects it
 #   position_agreement.* ~25 min: two diffuser positions' retrievals of the random geometries: do they agree where PWF fails?
@@ -74,6 +77,7 @@ case "${1:-all}" in
   cylinder-draws-1e3) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --photons 1e3 --grains P3000 "1.2 um" --out "$OUT" ;;
   cylinder-draws-96rows) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --rows 96 --grains P3000 --out "$OUT" ;;
   coherence-sensitivity) "$(dirname "$PWF")/python" -m benchmarks.coherence_sensitivity --out "$OUT" ;;
+  coherence-sensitivity-low-dose) for n in 1000 100; do "$(dirname "$PWF")/python" -m benchmarks.coherence_sensitivity --photons $n --out "$OUT" || exit 1; done ;;
   coarse-start) "$(dirname "$PWF")/python" -m benchmarks.coarse_start --curve --out "$OUT" ;;
   probe-window) "$(dirname "$PWF")/python" -m benchmarks.probe_window --out "$OUT" ;;
   probe-iterations) "$(dirname "$PWF")/python" -m benchmarks.probe_iterations --out "$OUT" ;;
@@ -95,6 +99,6 @@ case "${1:-all}" in
   fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --part all --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-edge cylinder-draws-single-material cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity detector-psf upstream-distance alpha-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes random-scenes-held-out sensitivity-check position-agreement diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
-  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|cylinder-draws|cylinder-draws-why|cylinder-draws-edge|cylinder-draws-single-material|cylinder-draws-1e3|cylinder-draws-96rows|coherence-sensitivity|detector-psf|upstream-distance|alpha-sensitivity|position-agreement|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|random-scenes-held-out|sensitivity-check|sensitivity-check-stability|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-edge cylinder-draws-single-material cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity coherence-sensitivity-low-dose detector-psf upstream-distance alpha-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes random-scenes-held-out sensitivity-check position-agreement diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
+  *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|cylinder-draws|cylinder-draws-why|cylinder-draws-edge|cylinder-draws-single-material|cylinder-draws-1e3|cylinder-draws-96rows|coherence-sensitivity|coherence-sensitivity-low-dose|detector-psf|upstream-distance|alpha-sensitivity|position-agreement|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|random-scenes-held-out|sensitivity-check|sensitivity-check-stability|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
 esac

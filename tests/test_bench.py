@@ -535,3 +535,43 @@ def test_field_grid_random_report_splits_the_pairs_by_what_the_alpha_rule_did():
     assert alpha_rule_outcome({"alpha": "0.1+0.05j"}) == "not lowered"
     assert alpha_rule_outcome({"alpha": "0.1+0.01j"}) == "lowered"
     assert alpha_rule_outcome({"alpha": "0.1+0.05j", "alpha_rule_kept_default": True}) == "kept default"
+
+
+def test_coherence_sensitivity_reports_another_dose_under_its_own_name(tmp_path):
+    """``coherence_sensitivity --photons N`` (session 102's low-dose rows) names its files by the
+    dose, keeps the committed name at the default 1e4, and reads per 10 % of length error the
+    largest gain change and the phase errors (true lengths, worst in the band, calibrated)."""
+    from benchmarks.coherence_sensitivity import results_name, sensitivity, write_markdown
+
+    assert results_name(1e4) == "coherence_sensitivity"
+    assert results_name(100.0) == "coherence_sensitivity_100ph"
+
+    def run(scale, gain, error, calibrated=False):
+        return {
+            "scene": "P3000",
+            "scale": scale,
+            "scale_y": scale,
+            "calibrated": calibrated,
+            "phase_gain": gain,
+            "phase_gain_origin": gain - 0.05,
+            "phase_error": error,
+            "bead_contrast_error": 0.01,
+            "field_upsample": 1.5,
+            "diffuser_model": "zero-phase",
+            "iterations": 100,
+            "seconds": 1.0,
+        }
+
+    rows = [
+        run(0.7, 2.0, 0.9),
+        run(0.9, 1.2, 0.33),
+        run(1.0, 1.1, 0.23),
+        run(1.1, 1.15, 0.24),
+        run(0.97, 1.1, 0.25, True),
+    ]
+    s = sensitivity(rows)
+    assert s["gain_true"] == 1.1 and abs(s["worst_per_10pct"] - 0.1) < 1e-9  # 0.7 lies outside the band
+    write_markdown(rows, str(tmp_path / "x.md"), photons=100.0)
+    text = (tmp_path / "x.md").read_text()
+    assert "--photons 100`" in text and "100 ph/px" in text
+    assert "| 0.230, 0.330, 0.250 |" in text
