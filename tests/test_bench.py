@@ -575,3 +575,29 @@ def test_coherence_sensitivity_reports_another_dose_under_its_own_name(tmp_path)
     text = (tmp_path / "x.md").read_text()
     assert "--photons 100`" in text and "100 ph/px" in text
     assert "| 0.230, 0.330, 0.250 |" in text
+
+
+def test_low_dose_lengths_counts_gains_and_losses_per_factor_and_dose_band(tmp_path):
+    """The low-dose lengths study (benchmarks/low_dose_lengths.py) counts, per factor and dose
+    band, the scenes that hold at the committed calibrated lengths and scaled, and those gained,
+    lost, better and worse."""
+    from benchmarks.low_dose_lengths import write_report
+
+    def row(scene, photons, factor, base, new):
+        return {
+            "scene": scene,
+            "photons": photons,
+            "factor": factor,
+            "phase_error": new,
+            "phase_gain": 1.0,
+            "iterations": 10,
+            "base_error": base,
+            "base_gain": 1.0,
+        }
+
+    rows = [row(0, 100, 1.1, 0.30, 0.20), row(1, 300, 1.1, 0.20, 0.30), row(2, 900, 1.1, 0.10, 0.11)]
+    write_report(rows, str(tmp_path), "test device", "python -m benchmarks.low_dose_lengths")
+    text = (tmp_path / "low_dose_lengths.md").read_text()
+    assert "| 1.1 | under 500 | 2 | 1 -> 1 | 1 / 1 | 1 / 1 | 0.250 -> 0.250 |" in text
+    assert "| 1.1 | 500 and over | 1 | 1 -> 1 | 0 / 0 | 0 / 0 | 0.100 -> 0.110 |" in text
+    assert "| 1.1 | all | 3 | 2 -> 2 | 1 / 1 | 1 / 1 |" in text
