@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
@@ -84,9 +85,12 @@ def _method_options(method: str, setup: SpeckleSetup) -> dict:
     return opts
 
 
-def draw_scene(i: int):
-    """Scene ``i``: its set-up, its simulated projection and the true sample-free pixels."""
+def draw_scene(i: int, photons: float | None = None):
+    """Scene ``i``: its set-up, its simulated projection and the true sample-free pixels;
+    ``photons``: its dose instead of the drawn one (the rest of the draw as it was)."""
     setup = draw_setup(np.random.default_rng(DRAW_SEED + i))
+    if photons is not None:
+        setup = replace(setup, photons=photons)
     sim = simulate_projection(setup, seed=i)
     return setup, sim, np.abs(sim.phase) < 1e-3 * np.abs(sim.phase).max()
 

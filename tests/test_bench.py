@@ -600,4 +600,6 @@ def test_low_dose_lengths_counts_gains_and_losses_per_factor_and_dose_band(tmp_p
     text = (tmp_path / "low_dose_lengths.md").read_text()
     assert "| 1.1 | under 500 | 2 | 1 -> 1 | 1 / 1 | 1 / 1 | 0.250 -> 0.250 |" in text
     assert "| 1.1 | 500 and over | 1 | 1 -> 1 | 0 / 0 | 0 / 0 | 0.100 -> 0.110 |" in text
-    assert "| 1.1 | all | 3 | 2 -> 2 | 1 / 1 | 1 / 1 |" in text
+    assert "| 1.1 | all | 3 | 2 -> 2 | 1 / 1 | 1 / 1 |" in text and "committed row" in text
+    write_report(rows, str(tmp_path), "test device", "python -m benchmarks.low_dose_lengths --fresh 240 60", "x")
+    assert "new random geometries" in (tmp_path / "x.md").read_text()
