@@ -127,12 +127,13 @@ def write_markdown(rows: list[dict], path: str, photons: float = DEFAULT_PHOTONS
     for name in scenes:
         own = [r for r in rows if r["scene"] == name]
         s, o = sensitivity(own), sensitivity(own, "phase_gain_origin")
-        e = sensitivity(own, "phase_error")
-        band = max(r["phase_error"] for r in own if not r["calibrated"] and abs(r["scale"] - 1.0) <= BAND + 1e-9)
+        fixed = [r for r in own if not r["calibrated"]]
+        true = next(r["phase_error"] for r in fixed if abs(r["scale"] - 1.0) < 1e-9)
+        band = max(r["phase_error"] for r in fixed if abs(r["scale"] - 1.0) <= BAND + 1e-9)
         calibrated = next(r["phase_error"] for r in own if r["calibrated"])
         lines.append(
             f"| {name} | {s['gain_true']:.3f} | {s['worst_per_10pct']:.1%} | {s['slope_per_10pct']:+.1%} "
-            f"| {o['gain_true']:.3f}, {o['worst_per_10pct']:.1%} | {e['gain_true']:.3f}, {band:.3f}, {calibrated:.3f} |"
+            f"| {o['gain_true']:.3f}, {o['worst_per_10pct']:.1%} | {true:.3f}, {band:.3f}, {calibrated:.3f} |"
         )
     lines += [
         "",

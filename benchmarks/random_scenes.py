@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Sequence
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
@@ -300,7 +301,7 @@ def main(argv=None) -> list[dict]:
 
 
 def run_and_report(
-    scenes: range, methods: tuple[str, ...], out_dir, name: str, report, figure, kept: list[dict] = ()
+    scenes: range, methods: tuple[str, ...], out_dir, name: str, report, figure, kept: Sequence[dict] = ()
 ) -> list[dict]:
     """``scenes`` by every method, one progress line a scene, then ``name``.csv,
     ``report(rows, out, device)`` and ``figure(rows, name.png)``. ``kept``: rows of earlier
