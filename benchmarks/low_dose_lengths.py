@@ -14,6 +14,8 @@ The committed row itself is the factor 1 (today's defaults; the same ``scene_row
                                           [--out benchmarks/results]
 
 Writes ``low_dose_lengths.md`` and ``.csv`` (about 16 min for two factors on 2 cores).
+``--scale im-alpha`` scales the alpha rule's Im(alpha) instead, the lengths as calibrated (the
+other route: a stronger penalty where the noise is high), and writes ``low_dose_alpha.*``.
 
 ``--fresh FIRST COUNT`` checks a factor chosen on those scenes on scenes it was not chosen on:
 random geometries FIRST to FIRST + COUNT - 1, drawn as ``random_scenes`` draws them but with the
@@ -33,6 +35,7 @@ from benchmarks.random_scenes import draw_scene, retrieve_scene
 from benchmarks.reporting import command_line, device_name, read_rows_csv, rows_of
 from benchmarks.stability import PHASE_ERROR_THRESHOLD, errors
 from pwf_dask.calibration import SensitivityLimits
+from pwf_dask.pwf.solver import sensitivity_alpha
 
 #: the doses the summary keeps apart (ph/px): the calibration's low-dose threshold is 500
 DOSE_BANDS = ((0.0, 500.0, "under 500"), (500.0, np.inf, "500 and over"))
@@ -71,19 +74,27 @@ def fresh_base(i: int, max_photons: float) -> dict | None:
         "phase_gain": err["phase_gain"],
         "coherence_x_um_used": res.coherence_length_x_m * 1e6,
         "coherence_y_um_used": res.coherence_length_y_m * 1e6,
+        "phase_sensitivity": res.parameters["phase_sensitivity"],
     }
 
 
-def scaled_row(base: dict, factor: float) -> dict:
-    """PWF on ``base``'s scene (at its dose) with its calibrated lengths times ``factor``."""
+def scaled_row(base: dict, factor: float, scaled: str = "lengths") -> dict:
+    """PWF on ``base``'s scene (at its dose) with its calibrated lengths times ``factor``, or
+    (``scaled="im-alpha"``) with those lengths and the alpha rule's Im(alpha) times ``factor``."""
     setup, sim, background = draw_scene(int(base["scene"]), base["photons"])
+    lengths = factor if scaled == "lengths" else 1.0
+    options = {}
+    if scaled == "im-alpha":
+        rule = sensitivity_alpha(base["phase_sensitivity"])
+        options["alpha"] = complex(rule.real, factor * rule.imag)
     res = retrieve_scene(
         setup,
         sim,
         background,
         "pwf",
-        coherence_length_x_m=factor * base["coherence_x_um_used"] * 1e-6,
-        coherence_length_y_m=factor * base["coherence_y_um_used"] * 1e-6,
+        coherence_length_x_m=lengths * base["coherence_x_um_used"] * 1e-6,
+        coherence_length_y_m=lengths * base["coherence_y_um_used"] * 1e-6,
+        **options,
     )
     err = errors(res.phase, res.attenuation, sim.phase, sim.attenuation, background)
     return {
@@ -125,15 +136,21 @@ def write_report(rows: list[dict], out_dir: str, device: str, command: str, name
         "new random geometries at a dose drawn from 1e2 ph/px up, a calibration that did not refuse and S at or",
         "above the warning's limit; the factor 1 is every default, run beside (module docstring).",
     )
-    if name == "low_dose_lengths":
+    if not name.endswith("_fresh"):
         scenes = (
             "the random geometries of `sensitivity_check.csv` with a low dose, a calibration that did not refuse",
             "and S at or above the warning's limit; the factor 1 is the committed row (module docstring).",
         )
+    what, scaled = (
+        "Calibrated coherence lengths scaled long",
+        "the coherence lengths, the calibrated ones times the factor",
+    )
+    if name.startswith("low_dose_alpha"):
+        what, scaled = "Im(alpha) raised", "Im(alpha), the alpha rule's times the factor (the lengths calibrated)"
     lines = [
-        f"# Calibrated coherence lengths scaled long at low dose ({device})",
+        f"# {what} at low dose ({device})",
         "",
-        f"`{command}`: PWF with every default but the coherence lengths, the calibrated ones times the factor, on",
+        f"`{command}`: PWF with every default but {scaled}, on",
         *scenes,
         f"A scene holds below a relative phase error of {PHASE_ERROR_THRESHOLD:g} inside the sample.",
         "",
@@ -158,8 +175,14 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--report-only", action="store_true", help="rewrite the report from the committed csv")
     ap.add_argument("--fresh", type=int, nargs=2, metavar=("FIRST", "COUNT"), help="new scenes at a drawn low dose")
+    ap.add_argument(
+        "--scale",
+        choices=("lengths", "im-alpha"),
+        default="lengths",
+        help="what the factors scale (im-alpha: the rule's)",
+    )
     args = ap.parse_args(argv)
-    name = "low_dose_lengths_fresh" if args.fresh else "low_dose_lengths"
+    name = ("low_dose_lengths" if args.scale == "lengths" else "low_dose_alpha") + ("_fresh" if args.fresh else "")
 
     def bases():
         if not args.fresh:
@@ -175,7 +198,7 @@ def main(argv=None) -> list[dict]:
         rows = []
         for base in bases():
             for factor in args.factors:
-                rows.append(scaled_row(base, factor))
+                rows.append(scaled_row(base, factor, args.scale))
                 print(f"scene {base['scene']} x{factor:g}: {rows[-1]['phase_error']:.3f}", flush=True)
         return rows
 

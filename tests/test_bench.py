@@ -601,5 +601,11 @@ def test_low_dose_lengths_counts_gains_and_losses_per_factor_and_dose_band(tmp_p
     assert "| 1.1 | under 500 | 2 | 1 -> 1 | 1 / 1 | 1 / 1 | 0.250 -> 0.250 |" in text
     assert "| 1.1 | 500 and over | 1 | 1 -> 1 | 0 / 0 | 0 / 0 | 0.100 -> 0.110 |" in text
     assert "| 1.1 | all | 3 | 2 -> 2 | 1 / 1 | 1 / 1 |" in text and "committed row" in text
-    write_report(rows, str(tmp_path), "test device", "python -m benchmarks.low_dose_lengths --fresh 240 60", "x")
-    assert "new random geometries" in (tmp_path / "x.md").read_text()
+    fresh = "low_dose_lengths_fresh"
+    write_report(rows, str(tmp_path), "test device", "python -m benchmarks.low_dose_lengths --fresh 240 60", fresh)
+    assert "new random geometries" in (tmp_path / f"{fresh}.md").read_text()
+    write_report(
+        rows, str(tmp_path), "test device", "python -m benchmarks.low_dose_lengths --scale im-alpha", "low_dose_alpha"
+    )
+    text = (tmp_path / "low_dose_alpha.md").read_text()
+    assert text.startswith("# Im(alpha) raised") and "committed row" in text
