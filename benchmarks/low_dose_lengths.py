@@ -23,11 +23,19 @@ dose drawn log-uniform from 1e2 to ``--max-photons`` (seeded per scene), each re
 every default (the factor 1) and with the calibrated lengths times each factor; scenes whose
 calibration refuses or whose S lies under the limit are left out. Writes
 ``low_dose_lengths_fresh.md`` and ``.csv``.
+
+``--reference-dose K`` asks where the long lengths' gain comes from: each of the committed
+scenes is run again with its reference at K times the sample's dose (the K flats a beamline
+averages; a noise draw of its own, :func:`reference_at_dose`), the lengths the committed row's
+calibrated ones times each factor (give ``--factors 1 1.1``). The report sets each row against
+the committed one and each factor against this run's factor 1. Writes ``low_dose_reference.md``
+and ``.csv`` (about 18 min for K = 10 and two factors).
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 import numpy as np
 
@@ -36,11 +44,14 @@ from benchmarks.reporting import command_line, device_name, read_rows_csv, rows_
 from benchmarks.stability import PHASE_ERROR_THRESHOLD, errors
 from pwf_dask.calibration import SensitivityLimits
 from pwf_dask.pwf.solver import sensitivity_alpha
+from pwf_dask.simulation import SpeckleSimulator
 
 #: the doses the summary keeps apart (ph/px): the calibration's low-dose threshold is 500
 DOSE_BANDS = ((0.0, 500.0, "under 500"), (500.0, np.inf, "500 and over"))
 #: ``--fresh`` scene i draws its dose from default_rng(FRESH_DOSE_SEED + i)
 FRESH_DOSE_SEED = 5000
+#: ``--reference-dose``: scene i's reference noise from default_rng((REFERENCE_NOISE_SEED, i))
+REFERENCE_NOISE_SEED = 6000
 
 
 def low_dose_scenes(out_dir: str, max_photons: float) -> list[dict]:
@@ -78,10 +89,27 @@ def fresh_base(i: int, max_photons: float) -> dict | None:
     }
 
 
-def scaled_row(base: dict, factor: float, scaled: str = "lengths") -> dict:
+def reference_at_dose(setup, scene: int, dose_factor: float) -> np.ndarray:
+    """Scene ``scene``'s reference (its diffuser, :func:`draw_scene`) at ``dose_factor`` times
+    the scene's dose (inf: noise-free): the many flats a beamline averages into one reference.
+    Its photon noise is drawn from a stream of its own, not the sample image's."""
+    sim = SpeckleSimulator(setup, seed=scene)
+    clean = sim.intensity(None, sim.diffuser())
+    if not np.isfinite(dose_factor):
+        return clean.astype(np.float32)
+    photons = dose_factor * setup.photons
+    noise = np.random.default_rng((REFERENCE_NOISE_SEED, scene))
+    return (noise.poisson(np.clip(clean, 0, None) * photons) / photons).astype(np.float32)
+
+
+def scaled_row(base: dict, factor: float, scaled: str = "lengths", reference_dose: float = 1.0) -> dict:
     """PWF on ``base``'s scene (at its dose) with its calibrated lengths times ``factor``, or
-    (``scaled="im-alpha"``) with those lengths and the alpha rule's Im(alpha) times ``factor``."""
+    (``scaled="im-alpha"``) with those lengths and the alpha rule's Im(alpha) times ``factor``;
+    ``reference_dose`` != 1: the reference at that many times the sample's dose
+    (:func:`reference_at_dose`), the lengths still the committed row's calibrated ones."""
     setup, sim, background = draw_scene(int(base["scene"]), base["photons"])
+    if reference_dose != 1.0:
+        sim = replace(sim, reference=reference_at_dose(setup, int(base["scene"]), reference_dose))
     lengths = factor if scaled == "lengths" else 1.0
     options = {}
     if scaled == "im-alpha":
@@ -101,6 +129,7 @@ def scaled_row(base: dict, factor: float, scaled: str = "lengths") -> dict:
         "scene": base["scene"],
         "photons": base["photons"],
         "factor": factor,
+        "reference_dose": reference_dose,
         "phase_error": err["phase_error"],
         "phase_gain": err["phase_gain"],
         "iterations": int(res.iterations),
@@ -131,6 +160,17 @@ def summary_lines(rows: list[dict]) -> list[str]:
     return lines
 
 
+def against_factor_one(rows: list[dict]) -> list[dict]:
+    """``rows`` other than the factor 1, each with that scene's factor-1 row of the same run as
+    its base: what the factor adds on top of whatever else the run changed."""
+    one = {r["scene"]: r for r in rows if r["factor"] == 1.0}
+    return [
+        r | {"base_error": one[r["scene"]]["phase_error"], "base_gain": one[r["scene"]]["phase_gain"]}
+        for r in rows
+        if r["factor"] != 1.0 and r["scene"] in one
+    ]
+
+
 def write_report(rows: list[dict], out_dir: str, device: str, command: str, name: str = "low_dose_lengths") -> None:
     scenes = (
         "new random geometries at a dose drawn from 1e2 ph/px up, a calibration that did not refuse and S at or",
@@ -147,6 +187,20 @@ def write_report(rows: list[dict], out_dir: str, device: str, command: str, name
     )
     if name.startswith("low_dose_alpha"):
         what, scaled = "Im(alpha) raised", "Im(alpha), the alpha rule's times the factor (the lengths calibrated)"
+    within = []
+    if name == "low_dose_reference":
+        dose = rows[0]["reference_dose"]
+        what = f"A reference at {dose:g}x the sample's dose, the lengths scaled long,"
+        scaled = (
+            f"the reference, at {dose:g}x the sample's dose (its own noise draw), and the coherence lengths,"
+            " the calibrated ones times the factor"
+        )
+        within = [
+            "",
+            "Each factor against the factor 1 of this run (both with the reference at that dose):",
+            "",
+            *summary_lines(against_factor_one(rows)),
+        ]
     lines = [
         f"# {what} at low dose ({device})",
         "",
@@ -155,6 +209,7 @@ def write_report(rows: list[dict], out_dir: str, device: str, command: str, name
         f"A scene holds below a relative phase error of {PHASE_ERROR_THRESHOLD:g} inside the sample.",
         "",
         *summary_lines(rows),
+        *within,
         "",
         "| scene | ph/px | factor | phase error: calibrated -> scaled | gain: calibrated -> scaled | iterations |",
         "|---:|---:|---:|---|---|---:|",
@@ -176,6 +231,12 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--report-only", action="store_true", help="rewrite the report from the committed csv")
     ap.add_argument("--fresh", type=int, nargs=2, metavar=("FIRST", "COUNT"), help="new scenes at a drawn low dose")
     ap.add_argument(
+        "--reference-dose",
+        type=float,
+        default=1.0,
+        help="the reference at this many times the sample's dose (inf: noise-free); writes low_dose_reference.*",
+    )
+    ap.add_argument(
         "--scale",
         choices=("lengths", "im-alpha"),
         default="lengths",
@@ -183,6 +244,10 @@ def main(argv=None) -> list[dict]:
     )
     args = ap.parse_args(argv)
     name = ("low_dose_lengths" if args.scale == "lengths" else "low_dose_alpha") + ("_fresh" if args.fresh else "")
+    if args.reference_dose != 1.0:
+        if args.fresh or args.scale != "lengths":
+            ap.error("--reference-dose scales the committed scenes' lengths only (no --fresh, no --scale)")
+        name = "low_dose_reference"
 
     def bases():
         if not args.fresh:
@@ -198,7 +263,7 @@ def main(argv=None) -> list[dict]:
         rows = []
         for base in bases():
             for factor in args.factors:
-                rows.append(scaled_row(base, factor, args.scale))
+                rows.append(scaled_row(base, factor, args.scale, args.reference_dose))
                 print(f"scene {base['scene']} x{factor:g}: {rows[-1]['phase_error']:.3f}", flush=True)
         return rows
 

@@ -2,6 +2,7 @@
 
 import csv
 
+import numpy as np
 import pytest
 
 from pwf_dask import cli
@@ -609,3 +610,41 @@ def test_low_dose_lengths_counts_gains_and_losses_per_factor_and_dose_band(tmp_p
     )
     text = (tmp_path / "low_dose_alpha.md").read_text()
     assert text.startswith("# Im(alpha) raised") and "committed row" in text
+
+
+def test_low_dose_reference_reports_each_factor_against_the_runs_own_factor_one(tmp_path):
+    """With the reference at a higher dose (``--reference-dose``) the report also sets each
+    factor against the factor 1 of the same run, so what the long lengths add on top of the
+    cleaner reference reads apart from what the reference did."""
+    from benchmarks.low_dose_lengths import against_factor_one, write_report
+
+    def row(scene, factor, base, new):
+        return {"scene": scene, "photons": 100, "factor": factor, "reference_dose": 10.0, "phase_error": new}
+
+    rows = [row(0, 1.0, 0.30, 0.20), row(0, 1.1, 0.30, 0.27), row(1, 1.0, 0.30, 0.30), row(1, 1.1, 0.30, 0.22)]
+    for r in rows:
+        r.update(phase_gain=1.0, iterations=10, base_error=0.30, base_gain=1.0)
+    on_top = against_factor_one(rows)
+    assert [(r["scene"], r["base_error"], r["phase_error"]) for r in on_top] == [(0, 0.20, 0.27), (1, 0.30, 0.22)]
+    write_report(rows, str(tmp_path), "test device", "cmd", "low_dose_reference")
+    text = (tmp_path / "low_dose_reference.md").read_text()
+    assert text.startswith("# A reference at 10x the sample's dose")
+    assert "| 1 | all | 2 | 0 -> 1 | 1 / 0 |" in text  # against the committed rows
+    assert "| 1.1 | all | 2 | 1 -> 1 | 1 / 1 | 1 / 1 |" in text.split("this run")[1]
+
+
+def test_reference_at_dose_is_the_scenes_diffuser_with_noise_falling_as_the_dose_rises():
+    """``--reference-dose``'s reference (benchmarks/low_dose_lengths.py) is the scene's own
+    reference speckle: noise-free at an infinite dose, and at k times the scene's dose its
+    photon noise's variance is 1 / (k x dose) of the mean, drawn apart from the sample's."""
+    from benchmarks.low_dose_lengths import reference_at_dose
+    from pwf_dask.simulation import SpeckleSetup, simulate_projection
+
+    setup = SpeckleSetup(shape=(64, 64), photons=200.0)
+    sim = simulate_projection(setup, seed=3)
+    clean = reference_at_dose(setup, 3, np.inf)
+    assert np.corrcoef(clean.ravel(), sim.reference.ravel())[0, 1] > 0.3  # the same speckle
+    for k in (1.0, 10.0):
+        noise = reference_at_dose(setup, 3, k) - clean
+        assert np.var(noise) / np.mean(clean) * k * setup.photons == pytest.approx(1.0, rel=0.1)
+    assert not np.array_equal(reference_at_dose(setup, 3, 1.0), sim.reference)
