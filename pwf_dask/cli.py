@@ -147,6 +147,7 @@ def retrieval_kwargs(args) -> dict:
         **({"single_material": True} if args.single_material else {}),
         # None: the scan's recorded diffuser_upstream_m (0 when it has none)
         **({} if args.diffuser_upstream_m is None else {"diffuser_upstream_m": args.diffuser_upstream_m}),
+        **({} if args.diffuser_nsr_floor is None else {"diffuser_nsr_floor": args.diffuser_nsr_floor}),
         **(
             {}
             if args.detector_halo is None
@@ -448,6 +449,13 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
         help="pwf: the detector spreads FRACTION of the light over an exponential halo of this 1/e radius in "
         "um (scattered scintillation light, from the detector's measured MTF); modelled beside the IOTF "
         "(default: none, the paper's model)",
+    )
+    p.add_argument(
+        "--diffuser-nsr-floor",
+        type=float,
+        help="pwf: the least noise-to-signal ratio the diffuser estimate's Wiener filters take from the "
+        "reference (default 0: as read); 1e-4 for a reference averaged from very many flats (docs/methods.md, "
+        "'A reference too clean breaks the zero-phase estimate')",
     )
     p.add_argument(
         "--diffuser-material",

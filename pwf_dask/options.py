@@ -79,6 +79,7 @@ class RetrievalOptions:
     diffuser_material: str = DEFAULT_MATERIAL
     diffuser_beta_over_delta: float | None = None
     diffuser_refine_iter: int = REFINE_ITER
+    diffuser_nsr_floor: float = 0.0
     phase_screen_iter: int = 0
     diffuser_upstream_m: float = 0.0
     diffuser_drift: str | tuple[float, float] = "auto"

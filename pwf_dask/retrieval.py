@@ -302,6 +302,7 @@ def estimate_diffuser(
     diffuser_material: str = DEFAULTS.diffuser_material,
     diffuser_beta_over_delta: float | None = DEFAULTS.diffuser_beta_over_delta,
     diffuser_refine_iter: int = DEFAULTS.diffuser_refine_iter,
+    diffuser_nsr_floor: float = DEFAULTS.diffuser_nsr_floor,
     phase_screen_iter: int = DEFAULTS.phase_screen_iter,
     diffuser_upstream_m: float = DEFAULTS.diffuser_upstream_m,
     detector_halo_fraction: float = DEFAULTS.detector_halo_fraction,
@@ -342,6 +343,7 @@ def estimate_diffuser(
         diffuser_model=diffuser_model,
         beta_over_delta=kappa,
         refine_iter=diffuser_refine_iter,
+        nsr_floor=diffuser_nsr_floor,
         upstream_m=diffuser_upstream_m,
         detector_halo_fraction=detector_halo_fraction,
         detector_halo_radius_m=detector_halo_radius_m,
@@ -1354,6 +1356,7 @@ def _checked_pwf_options(
     _check_start(opts.initial, image_shape, opts.restart)
     check_diffuser_drift(opts.diffuser_drift)
     optics.check_detector_blur(0.0, opts.detector_halo_fraction, opts.detector_halo_radius_m)
+    calibration.diffuser.check_nsr_floor(opts.diffuser_nsr_floor)
     field_upsample = check_field_upsample(opts.field_upsample)
     check_sample_field_grid(opts.sample_field_grid)
     prior = _single_material_prior(opts.single_material, opts.sample_material, opts.sample_delta_over_beta, geometry)
@@ -1398,6 +1401,7 @@ def _transmission(ref, diffuser, opts: RetrievalOptions, geometry: Geometry, coh
             diffuser_material=opts.diffuser_material,
             diffuser_beta_over_delta=opts.diffuser_beta_over_delta,
             diffuser_refine_iter=opts.diffuser_refine_iter,
+            diffuser_nsr_floor=opts.diffuser_nsr_floor,
             phase_screen_iter=opts.phase_screen_iter,
             diffuser_upstream_m=geometry.diffuser_upstream_m,
             detector_halo_fraction=opts.detector_halo_fraction,
@@ -1565,6 +1569,7 @@ def _parameters(
         "diffuser_probe_residual_pct": diffuser_probe.residuals_pct if diffuser_probe else None,
         "diffuser_beta_over_delta": kappa,
         "diffuser_refine_iter": opts.diffuser_refine_iter,
+        "diffuser_nsr_floor": opts.diffuser_nsr_floor,
         "diffuser_upstream_m": opts.diffuser_upstream_m,
         "detector_halo_fraction": opts.detector_halo_fraction,
         "detector_halo_radius_m": opts.detector_halo_radius_m,

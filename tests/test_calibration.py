@@ -544,3 +544,27 @@ def test_templates_simulated_side_by_side_equal_those_made_one_by_one(monkeypatc
     for one, pooled in zip(made["1"], made["3"]):
         np.testing.assert_allclose(pooled, one, rtol=1e-12)
     assert not np.allclose(made["3"][0], made["3"][1], rtol=0.05)  # each radius its own template
+
+
+def test_the_wiener_nsr_floor_binds_only_below_it_and_a_bad_floor_is_refused():
+    """``nsr_floor`` (:func:`pwf_dask.calibration.diffuser.wiener_nsr`): 0 leaves the zero-phase
+    estimate exactly as it was; a floor above the ratio the reference reads is the estimate
+    with that ratio given; a floor below it changes nothing; a negative one is refused."""
+    setup = SpeckleSetup(shape=(64, 64), photons=np.inf)
+    sim = SpeckleSimulator(setup, seed=2)
+    ref = sim.reference()
+    kw = dict(
+        pixel_size_m=setup.pixel_size_m,
+        wavelength=sim.wavelength,
+        diffuser_detector_distance_m=setup.diffuser_detector_distance_m,
+        coherence_length_x_m=setup.coherence_length_x_m,
+        coherence_length_y_m=setup.coherence_length_y_m,
+    )
+    today = calibration.diffuser_transmission(ref, **kw)
+    assert np.array_equal(calibration.diffuser_transmission(ref, nsr_floor=0.0, **kw), today)
+    assert np.array_equal(calibration.diffuser_transmission(ref, nsr_floor=1e-14, **kw), today)
+    floored = calibration.diffuser_transmission(ref, nsr_floor=1e-2, **kw)
+    assert np.array_equal(floored, calibration.diffuser_transmission(ref, nsr=1e-2, **kw))
+    assert not np.allclose(floored, today)
+    with pytest.raises(ValueError, match="diffuser_nsr_floor"):
+        calibration.diffuser_transmission(ref, nsr_floor=-1.0, **kw)

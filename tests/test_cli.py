@@ -54,6 +54,7 @@ def test_bad_simulate_option_is_refused_in_one_line_and_writes_nothing(tmp_path,
         ["--phase-scale", "0"],
         ["--alpha", "foo"],
         ["--detector-halo", "2", "3"],
+        ["--diffuser-nsr-floor", "-1"],
     ],
 )
 def test_bad_solver_option_is_refused_before_any_store_is_written(tmp_path, capsys, option):

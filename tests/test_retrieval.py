@@ -946,3 +946,42 @@ def test_a_detector_halo_given_is_modelled_and_gives_back_the_phase_it_cost():
     assert err[False] > 0.25 and err[True] < 0.2, err
     with pytest.raises(ValueError, match="halo fraction"):
         retrieve_projection(sim.sample, sim.reference, **kwargs(sim), detector_halo_fraction=1.5)
+
+
+@pytest.mark.slow
+def test_a_floor_on_the_wiener_nsr_keeps_a_noise_free_reference_from_breaking_the_zero_phase_diffuser():
+    """Random scene 24 of the benchmarks on a 96 x 128 frame: coarse grains (5.2 µm), a
+    coherence length of 20 pixels, the zero-phase diffuser, and a noise-free reference (many
+    flats averaged) beside a sample image at 842 ph/px. The Wiener filter then reads a
+    noise-to-signal ratio near 1e-6 and inverts the IOTF past what the model bears: the phase
+    comes out inverted (measured: error 4.0, gain -2.6). ``diffuser_nsr_floor=1e-4`` (measured:
+    0.32, gain 1.19) keeps it; recorded in ``parameters``."""
+    setup = SpeckleSetup(
+        shape=(96, 128),
+        energy_eV=21722.0,
+        pixel_size_m=0.3305e-6,
+        sample_diffuser_distance_m=0.0,
+        diffuser_detector_distance_m=0.1315,
+        coherence_length_x_m=6.687e-6,
+        coherence_length_y_m=5.770e-6,
+        photons=842.0,
+        diffuser_radius_median_m=5.18e-6,
+        diffuser_grain_shape="mixed",
+    )
+    sim = simulate_projection(setup, seed=24)
+    noiseless = SpeckleSimulator(setup, seed=24)
+    reference = noiseless.intensity(None, noiseless.diffuser())
+    background = np.abs(sim.phase) < 1e-3 * np.abs(sim.phase).max()
+    lengths = dict(coherence_length_x_m=setup.coherence_length_x_m, coherence_length_y_m=setup.coherence_length_y_m)
+
+    def run(floor):
+        res = retrieve_projection(
+            sim.sample, reference, **sim.geometry(), background_mask=background, diffuser_nsr_floor=floor, **lengths
+        )
+        assert res.parameters["diffuser_model"] == "zero-phase"
+        assert res.parameters["diffuser_nsr_floor"] == floor
+        return errors(res.phase, res.attenuation, sim.phase, sim.attenuation, background)
+
+    bare, floored = run(0.0), run(1e-4)
+    assert bare["phase_error"] > 1.0 and bare["phase_gain"] < 0.5
+    assert floored["phase_error"] < 0.4 and 0.9 < floored["phase_gain"] < 1.3

@@ -24,6 +24,26 @@ from pwf_dask.pwf import kernels
 REFINE_ITER = 25
 
 
+def check_nsr_floor(nsr_floor) -> None:
+    """A floor for :func:`wiener_nsr` that is not one, refused in one line."""
+    if isinstance(nsr_floor, bool) or not (math.isfinite(float(nsr_floor)) and float(nsr_floor) >= 0):
+        raise ValueError(f"diffuser_nsr_floor must be finite and >= 0, got {nsr_floor!r}")
+
+
+def wiener_nsr(reference_spectrum_power, pixel_radius2, iotf_half, floor: float = 0.0) -> float:
+    """The Wiener filters' noise-to-signal ratio: the reference's photon noise over its
+    speckle (:func:`pwf_dask.calibration.coherence.noise_to_signal`), at least ``floor``.
+
+    Why a floor: from a reference far cleaner than the sample image (a hundred flats averaged)
+    the ratio falls to 1e-6 and the filter inverts the Gaussian IOTF down to a thousandth of
+    its peak, where what it inverts is the model's own error (the IOTF's shape, the lengths,
+    the pixel), not noise. On the random low-dose scenes with the reference at 100x the dose
+    PWF then held 28 of 63 (scene 24: gain 0.11, converged); with a floor of 1e-4, 34
+    (docs/methods.md, "A reference too clean breaks the zero-phase estimate"). 0 (the
+    default): the ratio as read."""
+    return max(noise_to_signal(reference_spectrum_power, pixel_radius2, iotf_half), floor)
+
+
 def diffuser_transmission(
     reference,
     *,
@@ -35,6 +55,7 @@ def diffuser_transmission(
     pad: int = 0,
     shape: tuple[int, int] | None = None,
     nsr: float | None = None,
+    nsr_floor: float = 0.0,
     detector_halo_fraction: float = 0.0,
     detector_halo_radius_m: float = 0.0,
     phase_screen_iter: int = 0,
@@ -60,11 +81,14 @@ def diffuser_transmission(
     d is back-propagating over L2). ``detector_halo_fraction`` and ``detector_halo_radius_m``:
     the detector's halo, deconvolved or fitted beside the IOTF
     (:func:`pwf_dask.physics.optics.intensity_transfer_function`); none by default.
+    ``nsr_floor``: the least noise-to-signal ratio the Wiener filters take from the reference
+    (:func:`wiener_nsr`; 0: as read).
     """
     if diffuser_model not in DIFFUSER_MODELS:
         raise ValueError(f"unknown diffuser_model {diffuser_model!r}: choose one of {', '.join(DIFFUSER_MODELS)}")
     if not (math.isfinite(upstream_m) and upstream_m >= 0):
         raise ValueError(f"diffuser_upstream_m must be >= 0, got {upstream_m}")
+    check_nsr_floor(nsr_floor)
     if diffuser_model == "single-material":
         if beta_over_delta is None:
             raise ValueError("diffuser_model='single-material' needs beta_over_delta")
@@ -79,6 +103,7 @@ def diffuser_transmission(
             pad=pad,
             shape=shape,
             nsr=nsr,
+            nsr_floor=nsr_floor,
             iterations=refine_iter,
             detector_halo_fraction=detector_halo_fraction,
             detector_halo_radius_m=detector_halo_radius_m,
@@ -104,7 +129,7 @@ def diffuser_transmission(
         v, u = optics.frequency_grid(shape, 1.0, half=True)
         r2 = xp.asarray(u * u + v * v)
         if nsr is None:
-            nsr = noise_to_signal(spec.real**2 + spec.imag**2, r2, h)
+            nsr = wiener_nsr(spec.real**2 + spec.imag**2, r2, h, nsr_floor)
         spec *= h / (h * h + max(nsr, 1e-12))
     intensity = fft.irfft2(spec, s=shape)
     amplitude = xp.sqrt(xp.clip(intensity, 0, None)).astype(xp.complex128)
@@ -201,6 +226,7 @@ def ctf_phase_delay(
     pad: int = 0,
     shape: tuple[int, int] | None = None,
     nsr: float | None = None,
+    nsr_floor: float = 0.0,
     detector_halo_fraction: float = 0.0,
     detector_halo_radius_m: float = 0.0,
     fft: FFT | None = None,
@@ -235,7 +261,7 @@ def ctf_phase_delay(
     if nsr is None:
         vp, up = optics.frequency_grid(shape, 1.0, half=True)
         hh = xp.asarray(h) if h is not None else None
-        nsr = noise_to_signal(spec.real**2 + spec.imag**2, xp.asarray(up * up + vp * vp), hh)
+        nsr = wiener_nsr(spec.real**2 + spec.imag**2, xp.asarray(up * up + vp * vp), hh, nsr_floor)
     theta_hat = -transfer * spec / (transfer * transfer + max(nsr, 1e-6))
     theta_hat[0, 0] = 0
     return fft.irfft2(theta_hat, s=shape)
@@ -310,6 +336,7 @@ def single_material_diffuser(
     pad: int = 0,
     shape: tuple[int, int] | None = None,
     nsr: float | None = None,
+    nsr_floor: float = 0.0,
     detector_halo_fraction: float = 0.0,
     detector_halo_radius_m: float = 0.0,
     iterations: int = REFINE_ITER,
@@ -343,6 +370,7 @@ def single_material_diffuser(
         coherence_length_y_m=coherence_length_y_m,
         shape=shape,
         nsr=nsr,
+        nsr_floor=nsr_floor,
         detector_halo_fraction=detector_halo_fraction,
         detector_halo_radius_m=detector_halo_radius_m,
         fft=fft,

@@ -23,6 +23,7 @@ import numpy as np
 from pwf_dask import __version__, calibration
 from pwf_dask.backend import resolve_device, synchronize, task_stream, to_numpy
 from pwf_dask.baselines.tracking import MIN_POSITIONS
+from pwf_dask.calibration.diffuser import check_nsr_floor
 from pwf_dask.options import DEFAULTS, check_option_names
 from pwf_dask.physics.detector import check_threshold, repair_outliers, saturated_pixels
 from pwf_dask.physics.geometry import Geometry
@@ -101,6 +102,7 @@ _DIFFUSER_OPTIONS = (
     "diffuser_material",
     "diffuser_beta_over_delta",
     "diffuser_refine_iter",
+    "diffuser_nsr_floor",
     "phase_screen_iter",
     "diffuser_upstream_m",
     "detector_halo_fraction",
@@ -727,6 +729,7 @@ def _checked_scan_options(
         options.get("detector_halo_fraction", DEFAULTS.detector_halo_fraction),
         options.get("detector_halo_radius_m", DEFAULTS.detector_halo_radius_m),
     )
+    check_nsr_floor(options.get("diffuser_nsr_floor", DEFAULTS.diffuser_nsr_floor))
     return angle_chain, alpha_c
 
 
