@@ -29,7 +29,9 @@ scenes is run again with its reference at K times the sample's dose (the K flats
 averages; a noise draw of its own, :func:`reference_at_dose`), the lengths the committed row's
 calibrated ones times each factor (give ``--factors 1 1.1``). The report sets each row against
 the committed one and each factor against this run's factor 1. Writes ``low_dose_reference.md``
-and ``.csv`` (about 18 min for K = 10 and two factors).
+and ``.csv`` (about 18 min for K = 10 and two factors); at another K ``low_dose_reference_<K>x.*``.
+``--nsr-floor F`` gives the retrievals ``diffuser_nsr_floor=F`` and adds ``_floor<F>`` to the name
+(a reference that clean breaks the zero-phase estimate without it: docs/methods.md).
 """
 
 from __future__ import annotations
@@ -102,16 +104,19 @@ def reference_at_dose(setup, scene: int, dose_factor: float) -> np.ndarray:
     return (noise.poisson(np.clip(clean, 0, None) * photons) / photons).astype(np.float32)
 
 
-def scaled_row(base: dict, factor: float, scaled: str = "lengths", reference_dose: float = 1.0) -> dict:
+def scaled_row(
+    base: dict, factor: float, scaled: str = "lengths", reference_dose: float = 1.0, nsr_floor: float = 0.0
+) -> dict:
     """PWF on ``base``'s scene (at its dose) with its calibrated lengths times ``factor``, or
     (``scaled="im-alpha"``) with those lengths and the alpha rule's Im(alpha) times ``factor``;
     ``reference_dose`` != 1: the reference at that many times the sample's dose
-    (:func:`reference_at_dose`), the lengths still the committed row's calibrated ones."""
+    (:func:`reference_at_dose`), the lengths still the committed row's calibrated ones;
+    ``nsr_floor``: the retrieval's ``diffuser_nsr_floor``."""
     setup, sim, background = draw_scene(int(base["scene"]), base["photons"])
     if reference_dose != 1.0:
         sim = replace(sim, reference=reference_at_dose(setup, int(base["scene"]), reference_dose))
     lengths = factor if scaled == "lengths" else 1.0
-    options = {}
+    options = {"diffuser_nsr_floor": nsr_floor} if nsr_floor else {}
     if scaled == "im-alpha":
         rule = sensitivity_alpha(base["phase_sensitivity"])
         options["alpha"] = complex(rule.real, factor * rule.imag)
@@ -130,6 +135,7 @@ def scaled_row(base: dict, factor: float, scaled: str = "lengths", reference_dos
         "photons": base["photons"],
         "factor": factor,
         "reference_dose": reference_dose,
+        "nsr_floor": nsr_floor,
         "phase_error": err["phase_error"],
         "phase_gain": err["phase_gain"],
         "iterations": int(res.iterations),
@@ -188,14 +194,18 @@ def write_report(rows: list[dict], out_dir: str, device: str, command: str, name
     if name.startswith("low_dose_alpha"):
         what, scaled = "Im(alpha) raised", "Im(alpha), the alpha rule's times the factor (the lengths calibrated)"
     within = []
-    if name == "low_dose_reference":
-        dose = rows[0]["reference_dose"]
-        what = f"A reference at {dose:g}x the sample's dose, the lengths scaled long,"
+    if name.startswith("low_dose_reference"):
+        dose, floor = rows[0]["reference_dose"], rows[0].get("nsr_floor") or 0.0
+        longer = any(r["factor"] != 1.0 for r in rows)
+        parts = [f"A reference at {dose:g}x the sample's dose", *longer * ["the lengths scaled long"]]
+        parts += [f"the Wiener NSR floored at {floor:g}"] if floor else []
+        what = ", ".join(parts) + ("," if len(parts) > 1 else "")
         scaled = (
             f"the reference, at {dose:g}x the sample's dose (its own noise draw), and the coherence lengths,"
             " the calibrated ones times the factor"
         )
-        within = [
+        scaled += f", with `diffuser_nsr_floor={floor:g}`" if floor else ""
+        within = longer * [
             "",
             "Each factor against the factor 1 of this run (both with the reference at that dose):",
             "",
@@ -234,7 +244,14 @@ def main(argv=None) -> list[dict]:
         "--reference-dose",
         type=float,
         default=1.0,
-        help="the reference at this many times the sample's dose (inf: noise-free); writes low_dose_reference.*",
+        help="the reference at this many times the sample's dose (inf: noise-free); writes low_dose_reference.* "
+        "at 10, low_dose_reference_<K>x.* at others",
+    )
+    ap.add_argument(
+        "--nsr-floor",
+        type=float,
+        default=0.0,
+        help="with --reference-dose: the retrieval's diffuser_nsr_floor; adds _floor<F> to the name",
     )
     ap.add_argument(
         "--scale",
@@ -247,7 +264,10 @@ def main(argv=None) -> list[dict]:
     if args.reference_dose != 1.0:
         if args.fresh or args.scale != "lengths":
             ap.error("--reference-dose scales the committed scenes' lengths only (no --fresh, no --scale)")
-        name = "low_dose_reference"
+        name = "low_dose_reference" + ("" if args.reference_dose == 10 else f"_{args.reference_dose:g}x")
+        name += f"_floor{args.nsr_floor:g}" if args.nsr_floor else ""
+    elif args.nsr_floor:
+        ap.error("--nsr-floor goes with --reference-dose")
 
     def bases():
         if not args.fresh:
@@ -263,7 +283,7 @@ def main(argv=None) -> list[dict]:
         rows = []
         for base in bases():
             for factor in args.factors:
-                rows.append(scaled_row(base, factor, args.scale, args.reference_dose))
+                rows.append(scaled_row(base, factor, args.scale, args.reference_dose, args.nsr_floor))
                 print(f"scene {base['scene']} x{factor:g}: {rows[-1]['phase_error']:.3f}", flush=True)
         return rows
 

@@ -631,6 +631,11 @@ def test_low_dose_reference_reports_each_factor_against_the_runs_own_factor_one(
     assert text.startswith("# A reference at 10x the sample's dose")
     assert "| 1 | all | 2 | 0 -> 1 | 1 / 0 |" in text  # against the committed rows
     assert "| 1.1 | all | 2 | 1 -> 1 | 1 / 1 | 1 / 1 |" in text.split("this run")[1]
+    ones = [r | {"nsr_floor": 1e-4} for r in rows if r["factor"] == 1.0]
+    write_report(ones, str(tmp_path), "test device", "cmd", "low_dose_reference_100x_floor0.0001")
+    text = (tmp_path / "low_dose_reference_100x_floor0.0001.md").read_text()
+    assert text.startswith("# A reference at 10x the sample's dose, the Wiener NSR floored at 0.0001, at low dose")
+    assert "diffuser_nsr_floor=0.0001" in text and "this run" not in text
 
 
 def test_reference_at_dose_is_the_scenes_diffuser_with_noise_falling_as_the_dose_rises():
