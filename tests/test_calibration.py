@@ -566,5 +566,6 @@ def test_the_wiener_nsr_floor_binds_only_below_it_and_a_bad_floor_is_refused():
     floored = calibration.diffuser_transmission(ref, nsr_floor=1e-2, **kw)
     assert np.array_equal(floored, calibration.diffuser_transmission(ref, nsr=1e-2, **kw))
     assert not np.allclose(floored, today)
-    with pytest.raises(ValueError, match="diffuser_nsr_floor"):
-        calibration.diffuser_transmission(ref, nsr_floor=-1.0, **kw)
+    for bad in (-1.0, float("nan"), "much", True):
+        with pytest.raises(ValueError, match="diffuser_nsr_floor"):
+            calibration.diffuser_transmission(ref, nsr_floor=bad, **kw)

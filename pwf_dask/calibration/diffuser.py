@@ -26,7 +26,11 @@ REFINE_ITER = 25
 
 def check_nsr_floor(nsr_floor) -> None:
     """A floor for :func:`wiener_nsr` that is not one, refused in one line."""
-    if isinstance(nsr_floor, bool) or not (math.isfinite(float(nsr_floor)) and float(nsr_floor) >= 0):
+    try:
+        value = float(nsr_floor)
+    except (TypeError, ValueError):
+        value = math.nan
+    if isinstance(nsr_floor, bool) or not (math.isfinite(value) and value >= 0):
         raise ValueError(f"diffuser_nsr_floor must be finite and >= 0, got {nsr_floor!r}")
 
 
