@@ -97,11 +97,8 @@ def reference_at_dose(setup, scene: int, dose_factor: float) -> np.ndarray:
     Its photon noise is drawn from a stream of its own, not the sample image's."""
     sim = SpeckleSimulator(setup, seed=scene)
     clean = sim.intensity(None, sim.diffuser())
-    if not np.isfinite(dose_factor):
-        return clean.astype(np.float32)
-    photons = dose_factor * setup.photons
-    noise = np.random.default_rng((REFERENCE_NOISE_SEED, scene))
-    return (noise.poisson(np.clip(clean, 0, None) * photons) / photons).astype(np.float32)
+    sim.rng = np.random.default_rng((REFERENCE_NOISE_SEED, scene))
+    return sim.noisy(clean, dose_factor * setup.photons)
 
 
 def scaled_row(
