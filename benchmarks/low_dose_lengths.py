@@ -30,8 +30,10 @@ averages; a noise draw of its own, :func:`reference_at_dose`), the lengths the c
 calibrated ones times each factor (give ``--factors 1 1.1``). The report sets each row against
 the committed one and each factor against this run's factor 1. Writes ``low_dose_reference.md``
 and ``.csv`` (about 18 min for K = 10 and two factors); at another K ``low_dose_reference_<K>x.*``.
-``--nsr-floor F`` gives the retrievals ``diffuser_nsr_floor=F`` and adds ``_floor<F>`` to the name
-(a reference that clean breaks the zero-phase estimate without it: docs/methods.md).
+``--nsr-floor F`` gives the retrievals ``diffuser_nsr_floor=F`` (a number, or "sample": the default)
+and adds ``_floor<F>`` to the name where F is a number: 0 is the Wiener NSR as the reference reads
+it, the default before session 104 (a reference that clean breaks the zero-phase estimate with it:
+docs/methods.md).
 """
 
 from __future__ import annotations
@@ -45,6 +47,8 @@ from benchmarks.random_scenes import draw_scene, retrieve_scene
 from benchmarks.reporting import command_line, device_name, read_rows_csv, rows_of
 from benchmarks.stability import PHASE_ERROR_THRESHOLD, errors
 from pwf_dask.calibration import SensitivityLimits
+from pwf_dask.calibration.diffuser import SAMPLE_FLOOR
+from pwf_dask.options import DEFAULTS
 from pwf_dask.pwf.solver import sensitivity_alpha
 from pwf_dask.simulation import SpeckleSimulator
 
@@ -102,7 +106,11 @@ def reference_at_dose(setup, scene: int, dose_factor: float) -> np.ndarray:
 
 
 def scaled_row(
-    base: dict, factor: float, scaled: str = "lengths", reference_dose: float = 1.0, nsr_floor: float = 0.0
+    base: dict,
+    factor: float,
+    scaled: str = "lengths",
+    reference_dose: float = 1.0,
+    nsr_floor: float | str = DEFAULTS.diffuser_nsr_floor,
 ) -> dict:
     """PWF on ``base``'s scene (at its dose) with its calibrated lengths times ``factor``, or
     (``scaled="im-alpha"``) with those lengths and the alpha rule's Im(alpha) times ``factor``;
@@ -113,7 +121,7 @@ def scaled_row(
     if reference_dose != 1.0:
         sim = replace(sim, reference=reference_at_dose(setup, int(base["scene"]), reference_dose))
     lengths = factor if scaled == "lengths" else 1.0
-    options = {"diffuser_nsr_floor": nsr_floor} if nsr_floor else {}
+    options = {"diffuser_nsr_floor": nsr_floor}
     if scaled == "im-alpha":
         rule = sensitivity_alpha(base["phase_sensitivity"])
         options["alpha"] = complex(rule.real, factor * rule.imag)
@@ -192,16 +200,18 @@ def write_report(rows: list[dict], out_dir: str, device: str, command: str, name
         what, scaled = "Im(alpha) raised", "Im(alpha), the alpha rule's times the factor (the lengths calibrated)"
     within = []
     if name.startswith("low_dose_reference"):
-        dose, floor = rows[0]["reference_dose"], rows[0].get("nsr_floor") or 0.0
+        # rows of before the option ran with the reference's own ratio (0)
+        dose, floor = rows[0]["reference_dose"], rows[0].get("nsr_floor", 0.0)
+        fixed = floor != SAMPLE_FLOOR
         longer = any(r["factor"] != 1.0 for r in rows)
         parts = [f"A reference at {dose:g}x the sample's dose", *longer * ["the lengths scaled long"]]
-        parts += [f"the Wiener NSR floored at {floor:g}"] if floor else []
+        parts += [f"the Wiener NSR floored at {floor:g}" if floor else "the Wiener NSR as read"] if fixed else []
         what = ", ".join(parts) + ("," if len(parts) > 1 else "")
         scaled = (
             f"the reference, at {dose:g}x the sample's dose (its own noise draw), and the coherence lengths,"
             " the calibrated ones times the factor"
         )
-        scaled += f", with `diffuser_nsr_floor={floor:g}`" if floor else ""
+        scaled += f", with `diffuser_nsr_floor={floor:g}`" if fixed else ""
         within = longer * [
             "",
             "Each factor against the factor 1 of this run (both with the reference at that dose):",
@@ -246,9 +256,10 @@ def main(argv=None) -> list[dict]:
     )
     ap.add_argument(
         "--nsr-floor",
-        type=float,
-        default=0.0,
-        help="with --reference-dose: the retrieval's diffuser_nsr_floor; adds _floor<F> to the name",
+        type=lambda text: text if text == SAMPLE_FLOOR else float(text),
+        default=DEFAULTS.diffuser_nsr_floor,
+        help="with --reference-dose: the retrieval's diffuser_nsr_floor ('sample', the default, or a number: "
+        "adds _floor<F> to the name)",
     )
     ap.add_argument(
         "--scale",
@@ -262,8 +273,8 @@ def main(argv=None) -> list[dict]:
         if args.fresh or args.scale != "lengths":
             ap.error("--reference-dose scales the committed scenes' lengths only (no --fresh, no --scale)")
         name = "low_dose_reference" + ("" if args.reference_dose == 10 else f"_{args.reference_dose:g}x")
-        name += f"_floor{args.nsr_floor:g}" if args.nsr_floor else ""
-    elif args.nsr_floor:
+        name += "" if args.nsr_floor == SAMPLE_FLOOR else f"_floor{args.nsr_floor:g}"
+    elif args.nsr_floor != DEFAULTS.diffuser_nsr_floor:
         ap.error("--nsr-floor goes with --reference-dose")
 
     def bases():

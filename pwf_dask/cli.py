@@ -359,6 +359,14 @@ def _field_upsample(text: str):
         raise argparse.ArgumentTypeError(str(e).replace("field_upsample must be", "must be")) from None
 
 
+def _nsr_floor(text: str) -> float | str:
+    """A number, else the text ("sample"): the retrieval refuses any other in one line."""
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
 def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     """Every retrieval option of ``retrieve`` and ``run`` (read back by :func:`retrieval_kwargs`)."""
     from pwf_dask.calibration.diffuser import DIFFUSER_MODEL_CHOICES
@@ -452,10 +460,11 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--diffuser-nsr-floor",
-        type=float,
-        help="pwf: the least noise-to-signal ratio the diffuser estimate's Wiener filters take from the "
-        "reference (default 0: as read); 1e-4 for a reference averaged from very many flats (docs/methods.md, "
-        "'A reference too clean breaks the zero-phase estimate')",
+        type=_nsr_floor,
+        help="pwf: the least noise-to-signal ratio the diffuser estimate's Wiener filters take: 'sample' (the "
+        "default: the sample image's photon noise over the reference's speckle, so that a reference averaged "
+        "from many flats is not deconvolved past what the sample image shows), or a number (0: the reference's "
+        "own ratio, as read); docs/methods.md, 'A reference too clean breaks the zero-phase estimate'",
     )
     p.add_argument(
         "--diffuser-material",

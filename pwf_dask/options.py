@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 from pwf_dask.calibration.coherence import DEFAULT_COHERENCE_METHOD
-from pwf_dask.calibration.diffuser import REFINE_ITER
+from pwf_dask.calibration.diffuser import REFINE_ITER, SAMPLE_FLOOR
 from pwf_dask.physics.detector import DEFAULT_OUTLIER_SIGMA
 from pwf_dask.physics.diffusers import DEFAULT_MATERIAL
 from pwf_dask.pwf.solver import DEFAULT_GAMMA, DEFAULT_STEP, STOP_RULE
@@ -79,7 +79,9 @@ class RetrievalOptions:
     diffuser_material: str = DEFAULT_MATERIAL
     diffuser_beta_over_delta: float | None = None
     diffuser_refine_iter: int = REFINE_ITER
-    diffuser_nsr_floor: float = 0.0
+    #: the Wiener filters' least NSR: "sample" (half the sample image's photon noise over the
+    #: reference's speckle), or a number (0: the reference's own ratio, as read)
+    diffuser_nsr_floor: float | str = SAMPLE_FLOOR
     phase_screen_iter: int = 0
     diffuser_upstream_m: float = 0.0
     diffuser_drift: str | tuple[float, float] = "auto"

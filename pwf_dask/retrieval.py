@@ -302,7 +302,8 @@ def estimate_diffuser(
     diffuser_material: str = DEFAULTS.diffuser_material,
     diffuser_beta_over_delta: float | None = DEFAULTS.diffuser_beta_over_delta,
     diffuser_refine_iter: int = DEFAULTS.diffuser_refine_iter,
-    diffuser_nsr_floor: float = DEFAULTS.diffuser_nsr_floor,
+    diffuser_nsr_floor: float | str = DEFAULTS.diffuser_nsr_floor,
+    sample=None,
     phase_screen_iter: int = DEFAULTS.phase_screen_iter,
     diffuser_upstream_m: float = DEFAULTS.diffuser_upstream_m,
     detector_halo_fraction: float = DEFAULTS.detector_halo_fraction,
@@ -310,9 +311,13 @@ def estimate_diffuser(
     fft_workers: int | None = None,
 ):
     """The diffuser t_r exactly as :func:`retrieve_projection` estimates it with the same
-    options, for passing as its ``diffuser``: a scan computes it once per diffuser position."""
+    options, for passing as its ``diffuser``: a scan computes it once per diffuser position.
+    ``sample``: a sample image of the position, whose photon noise sets the Wiener filters'
+    floor under ``diffuser_nsr_floor="sample"`` (:func:`calibration.diffuser.resolved_nsr_floor`;
+    none given: the reference's own ratio)."""
     xp = get_array_module(reference)
     ref = _check_image("reference", reference, xp)
+    nsr_floor, sample_noise_var = calibration.diffuser.resolved_nsr_floor(diffuser_nsr_floor, sample)
     wavelength = optics.wavelength_m(energy_eV)
     pad, shape = diffuser_grid(
         ref.shape,
@@ -343,7 +348,8 @@ def estimate_diffuser(
         diffuser_model=diffuser_model,
         beta_over_delta=kappa,
         refine_iter=diffuser_refine_iter,
-        nsr_floor=diffuser_nsr_floor,
+        nsr_floor=nsr_floor,
+        sample_noise_var=sample_noise_var,
         upstream_m=diffuser_upstream_m,
         detector_halo_fraction=detector_halo_fraction,
         detector_halo_radius_m=detector_halo_radius_m,
@@ -390,12 +396,12 @@ def choose_diffuser(
         energy_eV, pixel_size_m, sample_diffuser_distance_m, diffuser_detector_distance_m, opts.diffuser_upstream_m
     )
     pair, opts, _, kappa = _prepared_pair(sample, reference, opts, geometry, bad_pixels)
-    t = _transmission(pair.ref, None, opts, geometry, pair.coherence, pair.y.shape, pair.fft)
+    t = _transmission(pair.ref, pair.y, None, opts, geometry, pair.coherence, pair.fft)
     if probes_diffuser(pair.requested, opts.diffuser_model):
         return _probed_diffuser(t, pair, opts, geometry)
     guarded, residuals = _guarded_alpha(opts, pair, t, None, geometry)
     if guarded.diffuser_model != opts.diffuser_model:  # "auto" gave the fit up for zero phase
-        t = _transmission(pair.ref, None, guarded, geometry, pair.coherence, pair.y.shape, pair.fft)
+        t = _transmission(pair.ref, pair.y, None, guarded, geometry, pair.coherence, pair.fft)
         return DiffuserChoice(guarded.diffuser_model, t, None, residuals)
     return DiffuserChoice(opts.diffuser_model, t, kappa, {})
 
@@ -713,7 +719,7 @@ def retrieve_projection(
     xp = get_array_module(y)
     background_mask = pair.background_mask
     drift, unseen, moved = pair.drift, pair.unseen, pair.unseen is not None
-    t = _transmission(ref, diffuser, opts, geometry, coherence, y.shape, fft)
+    t = _transmission(ref, y, diffuser, opts, geometry, coherence, fft)
     probe = None
     if diffuser is None and probes_diffuser(pair.requested, opts.diffuser_model):
         probe = _probed_diffuser(t, pair, opts, geometry)
@@ -724,7 +730,7 @@ def retrieve_projection(
         fitted = opts.diffuser_model
         opts, guard = _guarded_alpha(opts, pair, t, probe, geometry)
         if opts.diffuser_model != fitted:  # "auto" gave the fit up for zero phase
-            t, kappa = _transmission(ref, None, opts, geometry, coherence, y.shape, fft), None
+            t, kappa = _transmission(ref, y, None, opts, geometry, coherence, fft), None
     if moved:
         t = calibration.shift_transmission(t, drift, fft=fft)
     build = _model_builder(t, y.shape, geometry, coherence, opts, excluded, fft)
@@ -1028,7 +1034,7 @@ def _probe_residuals(pair: _Pair, opts: RetrievalOptions, geometry: Geometry, kn
         o = replace(opts, diffuser_model=model)
         t = known.get(model) if whole else None
         if t is None:
-            t = _transmission(probed.ref, None, o, geometry, probed.coherence, probed.y.shape, probed.fft)
+            t = _transmission(probed.ref, probed.y, None, o, geometry, probed.coherence, probed.fft)
         residuals[model] = _probe_residual(t, probed, o, geometry)
         if whole:
             estimates[model] = t
@@ -1052,7 +1058,7 @@ def _probed_diffuser(t_zero_phase, pair: _Pair, opts: RetrievalOptions, geometry
     if residuals["single-material"] < DIFFUSER_PROBE_RATIO * residuals["zero-phase"]:
         t = estimates.get("single-material")
         if t is None:
-            t = _transmission(pair.ref, None, single, geometry, pair.coherence, pair.y.shape, pair.fft)
+            t = _transmission(pair.ref, pair.y, None, single, geometry, pair.coherence, pair.fft)
         return DiffuserChoice("single-material", t, kappa, residuals)
     return DiffuserChoice("zero-phase", t_zero_phase, None, residuals)
 
@@ -1385,9 +1391,10 @@ def _resolved_grids(opts: RetrievalOptions, geometry: Geometry, coherence: _Cohe
     return replace(opts, pad=int(pad), upsample=int(upsample))
 
 
-def _transmission(ref, diffuser, opts: RetrievalOptions, geometry: Geometry, coherence: _Coherence, frame_shape, fft):
+def _transmission(ref, y, diffuser, opts: RetrievalOptions, geometry: Geometry, coherence: _Coherence, fft):
     """t_r on the computational grid: the one given, or estimated from the reference
-    (Methods, Diffuser transmission function; :func:`estimate_diffuser`)."""
+    (Methods, Diffuser transmission function; :func:`estimate_diffuser`), the sample image
+    ``y``'s noise flooring its Wiener filters under ``diffuser_nsr_floor="sample"``."""
     if diffuser is None:
         return estimate_diffuser(
             ref,
@@ -1402,6 +1409,7 @@ def _transmission(ref, diffuser, opts: RetrievalOptions, geometry: Geometry, coh
             diffuser_beta_over_delta=opts.diffuser_beta_over_delta,
             diffuser_refine_iter=opts.diffuser_refine_iter,
             diffuser_nsr_floor=opts.diffuser_nsr_floor,
+            sample=y,
             phase_screen_iter=opts.phase_screen_iter,
             diffuser_upstream_m=geometry.diffuser_upstream_m,
             detector_halo_fraction=opts.detector_halo_fraction,
@@ -1409,7 +1417,7 @@ def _transmission(ref, diffuser, opts: RetrievalOptions, geometry: Geometry, coh
             fft_workers=fft.workers,
         )
     t = get_array_module(ref).asarray(diffuser)
-    shape = computational_shape(tuple(frame_shape), opts.pad)
+    shape = computational_shape(tuple(y.shape), opts.pad)
     if t.shape != shape:
         raise ValueError(f"diffuser has shape {t.shape}, the computational grid is {shape} (pad {opts.pad})")
     return t

@@ -636,6 +636,9 @@ def test_low_dose_reference_reports_each_factor_against_the_runs_own_factor_one(
     text = (tmp_path / "low_dose_reference_100x_floor0.0001.md").read_text()
     assert text.startswith("# A reference at 10x the sample's dose, the Wiener NSR floored at 0.0001, at low dose")
     assert "diffuser_nsr_floor=0.0001" in text and "this run" not in text
+    write_report([r | {"nsr_floor": "sample"} for r in ones], str(tmp_path), "test device", "cmd", "low_dose_reference")
+    text = (tmp_path / "low_dose_reference.md").read_text()  # the default floor: nothing to name
+    assert text.startswith("# A reference at 10x the sample's dose at low dose") and "nsr_floor" not in text
 
 
 def test_reference_at_dose_is_the_scenes_diffuser_with_noise_falling_as_the_dose_rises():

@@ -546,6 +546,17 @@ def test_templates_simulated_side_by_side_equal_those_made_one_by_one(monkeypatc
     assert not np.allclose(made["3"][0], made["3"][1], rtol=0.05)  # each radius its own template
 
 
+def _transmission_keywords(setup, sim) -> dict:
+    """:func:`calibration.diffuser_transmission`'s geometry and true lengths for a simulator."""
+    return dict(
+        pixel_size_m=setup.pixel_size_m,
+        wavelength=sim.wavelength,
+        diffuser_detector_distance_m=setup.diffuser_detector_distance_m,
+        coherence_length_x_m=setup.coherence_length_x_m,
+        coherence_length_y_m=setup.coherence_length_y_m,
+    )
+
+
 def test_the_wiener_nsr_floor_binds_only_below_it_and_a_bad_floor_is_refused():
     """``nsr_floor`` (:func:`pwf_dask.calibration.diffuser.wiener_nsr`): 0 leaves the zero-phase
     estimate exactly as it was; a floor above the ratio the reference reads is the estimate
@@ -553,19 +564,67 @@ def test_the_wiener_nsr_floor_binds_only_below_it_and_a_bad_floor_is_refused():
     setup = SpeckleSetup(shape=(64, 64), photons=np.inf)
     sim = SpeckleSimulator(setup, seed=2)
     ref = sim.reference()
-    kw = dict(
-        pixel_size_m=setup.pixel_size_m,
-        wavelength=sim.wavelength,
-        diffuser_detector_distance_m=setup.diffuser_detector_distance_m,
-        coherence_length_x_m=setup.coherence_length_x_m,
-        coherence_length_y_m=setup.coherence_length_y_m,
-    )
+    kw = _transmission_keywords(setup, sim)
     today = calibration.diffuser_transmission(ref, **kw)
     assert np.array_equal(calibration.diffuser_transmission(ref, nsr_floor=0.0, **kw), today)
     assert np.array_equal(calibration.diffuser_transmission(ref, nsr_floor=1e-14, **kw), today)
     floored = calibration.diffuser_transmission(ref, nsr_floor=1e-2, **kw)
     assert np.array_equal(floored, calibration.diffuser_transmission(ref, nsr=1e-2, **kw))
     assert not np.allclose(floored, today)
-    for bad in (-1.0, float("nan"), "much", True):
+    for bad in (-1.0, float("nan"), "much", True, "sample"):  # "sample" is read before, from the sample
         with pytest.raises(ValueError, match="diffuser_nsr_floor"):
             calibration.diffuser_transmission(ref, nsr_floor=bad, **kw)
+    with pytest.raises(ValueError, match="'sample' or a number"):
+        calibration.diffuser.resolved_nsr_floor("much")
+
+
+def test_relative_noise_variance_reads_one_over_the_photons_per_pixel():
+    """:func:`pwf_dask.calibration.relative_noise_variance` of a Poisson speckle image is 1/N at
+    N photons per pixel, whatever the image's units; a sample passing half the light carries
+    half the photons (2/N); a noise-free image reads as over 1e5 photons per pixel."""
+    sim = SpeckleSimulator(SpeckleSetup(shape=(128, 128), photons=np.inf), seed=3)
+    clean = sim.intensity(None, sim.diffuser())
+    for photons in (300.0, 3e4):
+        counts = photons * clean.mean()  # the flat's photons times the speckle's mean
+        noisy = sim.noisy(clean, photons)
+        assert calibration.relative_noise_variance(noisy) * counts == pytest.approx(1.0, rel=0.12)
+        assert calibration.relative_noise_variance(3.7 * noisy) == pytest.approx(
+            calibration.relative_noise_variance(noisy), rel=1e-4
+        )
+        half = calibration.relative_noise_variance(sim.noisy(0.5 * clean, photons))
+        assert half * counts == pytest.approx(2.0, rel=0.12)
+    assert calibration.relative_noise_variance(clean) < 1e-5  # the speckle left in the corners
+    assert calibration.relative_noise_variance(np.zeros((16, 16))) == 0.0
+
+
+def test_the_sample_floor_takes_the_sample_images_noise_where_it_is_twice_the_references():
+    """``diffuser_nsr_floor="sample"`` (:func:`~pwf_dask.calibration.diffuser.wiener_nsr`): the
+    Wiener NSR is the reference's own while the sample image's noise is up to twice the
+    reference's (one flat: the estimate to the bit as without it), and half the sample's noise
+    over the reference's speckle beyond (a reference averaged from a hundred flats)."""
+    setup = SpeckleSetup(shape=(64, 64), photons=np.inf)
+    sim = SpeckleSimulator(setup, seed=2)
+    clean = sim.intensity(None, sim.diffuser())
+    kw = _transmission_keywords(setup, sim)
+    photons = 1000.0
+    ref, sample = sim.noisy(clean, photons), sim.noisy(0.9 * clean, photons)
+    floor, noise_var = calibration.diffuser.resolved_nsr_floor("sample", sample)
+    assert floor == 0.0 and noise_var * 0.9 * photons == pytest.approx(1.0, rel=0.1)
+    assert calibration.diffuser.resolved_nsr_floor("sample") == (0.0, 0.0)  # no sample: the reference's
+    assert calibration.diffuser.resolved_nsr_floor(1e-4, sample) == (1e-4, 0.0)
+    today = calibration.diffuser_transmission(ref, **kw)
+    assert np.array_equal(calibration.diffuser_transmission(ref, sample_noise_var=noise_var, **kw), today)
+    # the reference at 100x the sample's dose: half the sample's noise over its speckle
+    clean_ref = sim.noisy(clean, 100 * photons)
+    power = np.abs(np.fft.rfft2(clean_ref / clean_ref.mean())) ** 2
+    v, u = optics.frequency_grid(setup.shape, 1.0, half=True)
+    r2 = u * u + v * v
+    lengths = (setup.coherence_length_x_m, setup.coherence_length_y_m)
+    h = optics.intensity_transfer_function(setup.shape, setup.pixel_size_m, *lengths, 0.0, 0.0, np, np.float64)
+    own = calibration.noise_to_signal(power, r2, h)
+    noise = power[r2 > 0.25].mean()
+    nsr = calibration.diffuser.wiener_nsr(power, r2, h, 0.0, noise_var * 64 * 64)
+    assert nsr == pytest.approx(own * calibration.diffuser.SAMPLE_NSR_FRACTION * noise_var * 64 * 64 / noise)
+    assert nsr > 3 * own  # the reference reads far cleaner than the sample
+    floored = calibration.diffuser_transmission(clean_ref / clean_ref.mean(), sample_noise_var=noise_var, **kw)
+    assert np.allclose(floored, calibration.diffuser_transmission(clean_ref / clean_ref.mean(), nsr=nsr, **kw))

@@ -55,6 +55,7 @@ def test_bad_simulate_option_is_refused_in_one_line_and_writes_nothing(tmp_path,
         ["--alpha", "foo"],
         ["--detector-halo", "2", "3"],
         ["--diffuser-nsr-floor", "-1"],
+        ["--diffuser-nsr-floor", "much"],
     ],
 )
 def test_bad_solver_option_is_refused_before_any_store_is_written(tmp_path, capsys, option):

@@ -7,7 +7,8 @@
   Siegert fit, Eq. (sigert), the Gaussian alone, is ``method="gaussian"``
   (docs/methods.md, "Coherence calibration").
 * :func:`photon_noise_pct` - the sample image's photon noise from its white spectral floor
-  (the level of ``alpha="discrepancy"``).
+  (the level of ``alpha="discrepancy"``); :func:`relative_noise_variance` - a frame's, over
+  its own mean (the diffuser's Wiener NSR at the sample's noise).
 """
 
 from __future__ import annotations
@@ -484,12 +485,15 @@ def coherence_lengths(reference, pixel_size_m: float, **options) -> tuple[float,
     return fit.x_m, fit.y_m
 
 
-def noise_to_signal(reference_spectrum_power, pixel_radius2, iotf_half) -> float:
+def noise_to_signal(reference_spectrum_power, pixel_radius2, iotf_half, noise_per_bin: float = 0.0) -> float:
     """Scalar noise-to-signal ratio of the Wiener filter.
 
     White noise fills the spectrum beyond the Nyquist circle (u^2 + v^2 > 1/4 cycles/pixel^2,
     the corners), where the IOTF has removed any speckle; the coherent signal power is what
     the low-frequency band holds above that floor, corrected for the IOTF there.
+    ``noise_per_bin`` > 0: another image's noise on this spectrum's scale (the sample image's,
+    :func:`relative_noise_variance` times the grid's pixels), taken where it is the larger:
+    the ratio the reference's speckle has at that image's noise.
     """
     xp = get_array_module(reference_spectrum_power)
     corners = pixel_radius2 > 0.25
@@ -502,4 +506,14 @@ def noise_to_signal(reference_spectrum_power, pixel_radius2, iotf_half) -> float
     signal = float(xp.mean((reference_spectrum_power[band] - noise) / iotf_half[band] ** 2))
     if signal <= 0:
         return 1.0
-    return noise / signal
+    return max(noise, noise_per_bin) / signal
+
+
+def relative_noise_variance(image) -> float:
+    """The white photon noise's variance per pixel over the image's mean squared: 1 / photons
+    per pixel for Poisson counts, whatever the units (flat-corrected, attenuated by a sample,
+    averaged from many flats). :func:`white_noise_floor` of the image over its mean; 0 for an
+    image of no mean."""
+    img = np.asarray(to_numpy(image), np.float64)
+    mean = float(img.mean())
+    return white_noise_floor(img / mean) if mean > 0 else 0.0

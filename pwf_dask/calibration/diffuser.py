@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from pwf_dask.backend import FFT, get_array_module
-from pwf_dask.calibration.coherence import noise_to_signal
+from pwf_dask.calibration.coherence import noise_to_signal, relative_noise_variance
 from pwf_dask.physics import optics
 from pwf_dask.pwf import kernels
 
@@ -24,28 +24,55 @@ from pwf_dask.pwf import kernels
 REFINE_ITER = 25
 
 
-def check_nsr_floor(nsr_floor) -> None:
-    """A floor for :func:`wiener_nsr` that is not one, refused in one line."""
+#: ``diffuser_nsr_floor="sample"``: the Wiener NSR is at least this fraction of the ratio the
+#: reference's speckle has at the sample image's photon noise (:func:`wiener_nsr`)
+SAMPLE_NSR_FRACTION = 0.5
+#: the floor read from the sample image's noise, not a number
+SAMPLE_FLOOR = "sample"
+
+
+def check_nsr_floor(nsr_floor, sample_allowed: bool = True) -> None:
+    """A floor for :func:`wiener_nsr` that is not one ("sample" where ``sample_allowed``, or a
+    number >= 0), refused in one line."""
+    if nsr_floor == SAMPLE_FLOOR and sample_allowed:
+        return
     try:
         value = float(nsr_floor)
     except (TypeError, ValueError):
         value = math.nan
     if isinstance(nsr_floor, bool) or not (math.isfinite(value) and value >= 0):
-        raise ValueError(f"diffuser_nsr_floor must be finite and >= 0, got {nsr_floor!r}")
+        raise ValueError(f"diffuser_nsr_floor must be 'sample' or a number >= 0, got {nsr_floor!r}")
 
 
-def wiener_nsr(reference_spectrum_power, pixel_radius2, iotf_half, floor: float = 0.0) -> float:
+def resolved_nsr_floor(nsr_floor, sample=None) -> tuple[float, float]:
+    """``diffuser_nsr_floor`` as :func:`diffuser_transmission` takes it: (a fixed floor, the
+    sample image's relative noise variance). "sample" reads the latter from ``sample``
+    (:func:`pwf_dask.calibration.coherence.relative_noise_variance`; none given: no floor)."""
+    check_nsr_floor(nsr_floor)
+    if nsr_floor != SAMPLE_FLOOR:
+        return float(nsr_floor), 0.0
+    return 0.0, (0.0 if sample is None else relative_noise_variance(sample))
+
+
+def wiener_nsr(
+    reference_spectrum_power, pixel_radius2, iotf_half, floor: float = 0.0, sample_noise_per_bin: float = 0.0
+) -> float:
     """The Wiener filters' noise-to-signal ratio: the reference's photon noise over its
-    speckle (:func:`pwf_dask.calibration.coherence.noise_to_signal`), at least ``floor``.
+    speckle (:func:`pwf_dask.calibration.coherence.noise_to_signal`), at least
+    :data:`SAMPLE_NSR_FRACTION` of the sample image's noise over that speckle
+    (``sample_noise_per_bin``: on the spectrum's scale) and at least ``floor``.
 
-    Why a floor: from a reference far cleaner than the sample image (a hundred flats averaged)
-    the ratio falls to 1e-6 and the filter inverts the Gaussian IOTF down to a thousandth of
-    its peak, where what it inverts is the model's own error (the IOTF's shape, the lengths,
-    the pixel), not noise. On the random low-dose scenes with the reference at 100x the dose
-    PWF then held 28 of 63 (scene 24: gain 0.11, converged); with a floor of 1e-4, 34
-    (docs/methods.md, "A reference too clean breaks the zero-phase estimate"). 0 (the
-    default): the ratio as read."""
-    return max(noise_to_signal(reference_spectrum_power, pixel_radius2, iotf_half), floor)
+    Why: from a reference far cleaner than the sample image (a hundred flats averaged) the
+    reference's own ratio falls to 1e-6 and the filter inverts the Gaussian IOTF down to a
+    thousandth of its peak, where what it inverts is the model's own error (the IOTF's shape,
+    the lengths, the pixel), not noise, and detail the sample image's noise hides anyway. On
+    the random low-dose scenes with the reference at 100x the dose PWF then held 28 of 63
+    (scene 24: gain 0.11, converged); with the sample's noise as the floor, 37; with a fixed
+    floor of 1e-4, 34 (docs/methods.md, "A reference too clean breaks the zero-phase
+    estimate"). With the reference at the sample's dose the two noises are alike and the
+    reference's own ratio is taken."""
+    noise = SAMPLE_NSR_FRACTION * sample_noise_per_bin
+    return max(noise_to_signal(reference_spectrum_power, pixel_radius2, iotf_half, noise), floor)
 
 
 def diffuser_transmission(
@@ -60,6 +87,7 @@ def diffuser_transmission(
     shape: tuple[int, int] | None = None,
     nsr: float | None = None,
     nsr_floor: float = 0.0,
+    sample_noise_var: float = 0.0,
     detector_halo_fraction: float = 0.0,
     detector_halo_radius_m: float = 0.0,
     phase_screen_iter: int = 0,
@@ -85,14 +113,15 @@ def diffuser_transmission(
     d is back-propagating over L2). ``detector_halo_fraction`` and ``detector_halo_radius_m``:
     the detector's halo, deconvolved or fitted beside the IOTF
     (:func:`pwf_dask.physics.optics.intensity_transfer_function`); none by default.
-    ``nsr_floor``: the least noise-to-signal ratio the Wiener filters take from the reference
-    (:func:`wiener_nsr`; 0: as read).
+    ``nsr_floor``, ``sample_noise_var``: the least noise-to-signal ratio the Wiener filters
+    take, fixed and as the sample image's relative noise variance gives it (:func:`wiener_nsr`,
+    :func:`resolved_nsr_floor`; 0 and 0: the reference's as read).
     """
     if diffuser_model not in DIFFUSER_MODELS:
         raise ValueError(f"unknown diffuser_model {diffuser_model!r}: choose one of {', '.join(DIFFUSER_MODELS)}")
     if not (math.isfinite(upstream_m) and upstream_m >= 0):
         raise ValueError(f"diffuser_upstream_m must be >= 0, got {upstream_m}")
-    check_nsr_floor(nsr_floor)
+    check_nsr_floor(nsr_floor, sample_allowed=False)  # resolved_nsr_floor reads "sample"
     if diffuser_model == "single-material":
         if beta_over_delta is None:
             raise ValueError("diffuser_model='single-material' needs beta_over_delta")
@@ -108,6 +137,7 @@ def diffuser_transmission(
             shape=shape,
             nsr=nsr,
             nsr_floor=nsr_floor,
+            sample_noise_var=sample_noise_var,
             iterations=refine_iter,
             detector_halo_fraction=detector_halo_fraction,
             detector_halo_radius_m=detector_halo_radius_m,
@@ -133,7 +163,7 @@ def diffuser_transmission(
         v, u = optics.frequency_grid(shape, 1.0, half=True)
         r2 = xp.asarray(u * u + v * v)
         if nsr is None:
-            nsr = wiener_nsr(spec.real**2 + spec.imag**2, r2, h, nsr_floor)
+            nsr = wiener_nsr(spec.real**2 + spec.imag**2, r2, h, nsr_floor, sample_noise_var * shape[0] * shape[1])
         spec *= h / (h * h + max(nsr, 1e-12))
     intensity = fft.irfft2(spec, s=shape)
     amplitude = xp.sqrt(xp.clip(intensity, 0, None)).astype(xp.complex128)
@@ -231,6 +261,7 @@ def ctf_phase_delay(
     shape: tuple[int, int] | None = None,
     nsr: float | None = None,
     nsr_floor: float = 0.0,
+    sample_noise_var: float = 0.0,
     detector_halo_fraction: float = 0.0,
     detector_halo_radius_m: float = 0.0,
     fft: FFT | None = None,
@@ -265,7 +296,8 @@ def ctf_phase_delay(
     if nsr is None:
         vp, up = optics.frequency_grid(shape, 1.0, half=True)
         hh = xp.asarray(h) if h is not None else None
-        nsr = wiener_nsr(spec.real**2 + spec.imag**2, xp.asarray(up * up + vp * vp), hh, nsr_floor)
+        noise = sample_noise_var * shape[0] * shape[1]
+        nsr = wiener_nsr(spec.real**2 + spec.imag**2, xp.asarray(up * up + vp * vp), hh, nsr_floor, noise)
     theta_hat = -transfer * spec / (transfer * transfer + max(nsr, 1e-6))
     theta_hat[0, 0] = 0
     return fft.irfft2(theta_hat, s=shape)
@@ -341,6 +373,7 @@ def single_material_diffuser(
     shape: tuple[int, int] | None = None,
     nsr: float | None = None,
     nsr_floor: float = 0.0,
+    sample_noise_var: float = 0.0,
     detector_halo_fraction: float = 0.0,
     detector_halo_radius_m: float = 0.0,
     iterations: int = REFINE_ITER,
@@ -375,6 +408,7 @@ def single_material_diffuser(
         shape=shape,
         nsr=nsr,
         nsr_floor=nsr_floor,
+        sample_noise_var=sample_noise_var,
         detector_halo_fraction=detector_halo_fraction,
         detector_halo_radius_m=detector_halo_radius_m,
         fft=fft,

@@ -23,7 +23,7 @@ import numpy as np
 from pwf_dask import __version__, calibration
 from pwf_dask.backend import resolve_device, synchronize, task_stream, to_numpy
 from pwf_dask.baselines.tracking import MIN_POSITIONS
-from pwf_dask.calibration.diffuser import check_nsr_floor
+from pwf_dask.calibration.diffuser import SAMPLE_FLOOR, check_nsr_floor
 from pwf_dask.options import DEFAULTS, check_option_names
 from pwf_dask.physics.detector import check_threshold, repair_outliers, saturated_pixels
 from pwf_dask.physics.geometry import Geometry
@@ -150,9 +150,16 @@ def _fit_diffuser(frames, p, reference, coherence, options, xp, fft_workers):
         )
         return choice.transmission, choice.model, choice.residuals_pct
     chosen = {k: options[k] for k in _DIFFUSER_OPTIONS if k in options}
-    repaired, _ = repair_outliers(reference, options.get("outlier_sigma", DEFAULTS.outlier_sigma))
+    sigma = options.get("outlier_sigma", DEFAULTS.outlier_sigma)
+    repaired, _ = repair_outliers(reference, sigma)
+    sample = None
+    if chosen.get("diffuser_nsr_floor", DEFAULTS.diffuser_nsr_floor) == SAMPLE_FLOOR:
+        # the position's middle angle stands for its projections' noise, as the probe's does
+        index = (p, g["projections"].shape[1] // 2)
+        sample, _ = repair_outliers(xp.asarray(_read_corrected(g, "projections", index, flat, dark, corrected)), sigma)
     t = retrieval.estimate_diffuser(
         repaired,  # the fit reads every pixel
+        sample=sample,
         energy_eV=float(g.attrs["energy_eV"]),
         pixel_size_m=float(g.attrs["pixel_size_m"]),
         diffuser_detector_distance_m=float(g.attrs["diffuser_detector_distance_m"]),
