@@ -33,7 +33,9 @@ and ``.csv`` (about 18 min for K = 10 and two factors); at another K ``low_dose_
 ``--nsr-floor F`` gives the retrievals ``diffuser_nsr_floor=F`` (a number, or "sample": the default)
 and adds ``_floor<F>`` to the name where F is a number: 0 is the Wiener NSR as the reference reads
 it, the default before session 104 (a reference that clean breaks the zero-phase estimate with it:
-docs/methods.md).
+docs/methods.md). ``--min-photons M --max-photons inf`` takes the committed scenes from M ph/px up
+instead and writes ``high_dose_reference*.*``: does a cleaner reference pay where the sample
+images are bright?
 """
 
 from __future__ import annotations
@@ -60,13 +62,14 @@ FRESH_DOSE_SEED = 5000
 REFERENCE_NOISE_SEED = 6000
 
 
-def low_dose_scenes(out_dir: str, max_photons: float) -> list[dict]:
-    """The committed PWF rows this study scales: low dose, calibrated, S at or above the limit."""
+def low_dose_scenes(out_dir: str, max_photons: float, min_photons: float = 0.0) -> list[dict]:
+    """The committed PWF rows this study scales: a dose from ``min_photons`` to under
+    ``max_photons``, calibrated, S at or above the limit."""
     limit = SensitivityLimits().min_phase_sensitivity
     return [
         r
         for r in read_rows_csv(out_dir, "sensitivity_check.csv")
-        if not r["refused"] and r["photons"] < max_photons and r["phase_sensitivity"] >= limit
+        if not r["refused"] and min_photons <= r["photons"] < max_photons and r["phase_sensitivity"] >= limit
     ]
 
 
@@ -159,6 +162,8 @@ def summary_lines(rows: list[dict]) -> list[str]:
     for factor in dict.fromkeys(r["factor"] for r in rows):
         for lo, hi, label in (*DOSE_BANDS, (0.0, np.inf, "all")):
             rs = [r for r in rows if r["factor"] == factor and lo <= r["photons"] < hi]
+            if not rs:  # a band the scenes' doses miss
+                continue
             base = np.array([r["base_error"] for r in rs])
             new = np.array([r["phase_error"] for r in rs])
             held, holds = base < PHASE_ERROR_THRESHOLD, new < PHASE_ERROR_THRESHOLD
@@ -183,13 +188,14 @@ def against_factor_one(rows: list[dict]) -> list[dict]:
 
 
 def write_report(rows: list[dict], out_dir: str, device: str, command: str, name: str = "low_dose_lengths") -> None:
+    band = "high dose" if name.startswith("high_dose") else "low dose"
     scenes = (
         "new random geometries at a dose drawn from 1e2 ph/px up, a calibration that did not refuse and S at or",
         "above the warning's limit; the factor 1 is every default, run beside (module docstring).",
     )
     if not name.endswith("_fresh"):
         scenes = (
-            "the random geometries of `sensitivity_check.csv` with a low dose, a calibration that did not refuse",
+            f"the random geometries of `sensitivity_check.csv` with a {band}, a calibration that did not refuse",
             "and S at or above the warning's limit; the factor 1 is the committed row (module docstring).",
         )
     what, scaled = (
@@ -199,7 +205,7 @@ def write_report(rows: list[dict], out_dir: str, device: str, command: str, name
     if name.startswith("low_dose_alpha"):
         what, scaled = "Im(alpha) raised", "Im(alpha), the alpha rule's times the factor (the lengths calibrated)"
     within = []
-    if name.startswith("low_dose_reference"):
+    if name.startswith(("low_dose_reference", "high_dose_reference")):
         # rows of before the option ran with the reference's own ratio (0)
         dose, floor = rows[0]["reference_dose"], rows[0].get("nsr_floor", 0.0)
         fixed = floor != SAMPLE_FLOOR
@@ -219,7 +225,7 @@ def write_report(rows: list[dict], out_dir: str, device: str, command: str, name
             *summary_lines(against_factor_one(rows)),
         ]
     lines = [
-        f"# {what} at low dose ({device})",
+        f"# {what} at {band} ({device})",
         "",
         f"`{command}`: PWF with every default but {scaled}, on",
         *scenes,
@@ -244,6 +250,13 @@ def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--factors", type=float, nargs="+", default=[1.1, 1.25])
     ap.add_argument("--max-photons", type=float, default=2000.0)
+    ap.add_argument(
+        "--min-photons",
+        type=float,
+        default=0.0,
+        help="with --reference-dose: the committed scenes from this dose up (and --max-photons inf); writes "
+        "high_dose_reference*.* (the reference cleaner where the sample images are bright)",
+    )
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--report-only", action="store_true", help="rewrite the report from the committed csv")
     ap.add_argument("--fresh", type=int, nargs=2, metavar=("FIRST", "COUNT"), help="new scenes at a drawn low dose")
@@ -274,12 +287,14 @@ def main(argv=None) -> list[dict]:
             ap.error("--reference-dose scales the committed scenes' lengths only (no --fresh, no --scale)")
         name = "low_dose_reference" + ("" if args.reference_dose == 10 else f"_{args.reference_dose:g}x")
         name += "" if args.nsr_floor == SAMPLE_FLOOR else f"_floor{args.nsr_floor:g}"
-    elif args.nsr_floor != DEFAULTS.diffuser_nsr_floor:
-        ap.error("--nsr-floor goes with --reference-dose")
+        if args.min_photons:
+            name = name.replace("low_dose", "high_dose", 1)
+    elif args.nsr_floor != DEFAULTS.diffuser_nsr_floor or args.min_photons:
+        ap.error("--nsr-floor and --min-photons go with --reference-dose")
 
     def bases():
         if not args.fresh:
-            yield from low_dose_scenes(args.out, args.max_photons)
+            yield from low_dose_scenes(args.out, args.max_photons, args.min_photons)
             return
         first, count = args.fresh
         for i in range(first, first + count):

@@ -34,8 +34,9 @@
 #   low_dose_lengths.* ~16 min: the random geometries' low-dose scenes with the calibrated lengths x1.1 and x1.25
 #                      (low_dose_lengths_fresh.*: --fresh 240 60 --factors 1.1, ~24 min: new scenes at a drawn low dose;
 #                      low_dose_alpha.*: --scale im-alpha --factors 4, ~8 min: the rule's Im(alpha) x4 instead;
-#                      low_dose_reference*.*: low-dose-reference, ~45 min: the reference at 10x and 100x the sample's
-#                      dose with the default Wiener floor, then with diffuser_nsr_floor 0 (_floor0) and at 100x 1e-4)
+#                      low_dose_reference*.*: low-dose-reference, ~75 min: the reference at 10x and 100x the sample's
+#                      dose with the default Wiener floor, then with diffuser_nsr_floor 0 (_floor0) and at 100x 1e-4;
+#                      high_dose_reference*.*: the scenes from 3e4 ph/px up at 10x, the default floor and 0)
 #   detector_psf.*     ~15 min: PWF (calibrated, given the blurred lengths) and UMPA K=1 under the detector's own blur
 #   upstream_distance.* ~15 min: an upstream diffuser (L1 = 0) at 0-100 mm, PWF at each assumed distance: what selects it
 #   position_agreement.* ~25 min: two diffuser positions' retrievals of the random geometries: do they agree where PWF fails?
@@ -83,7 +84,7 @@ case "${1:-all}" in
   cylinder-draws-96rows) "$(dirname "$PWF")/python" -m benchmarks.cylinder_draws --rows 96 --grains P3000 --out "$OUT" ;;
   coherence-sensitivity) "$(dirname "$PWF")/python" -m benchmarks.coherence_sensitivity --out "$OUT" ;;
   low-dose-lengths) "$(dirname "$PWF")/python" -m benchmarks.low_dose_lengths --out "$OUT" && "$(dirname "$PWF")/python" -m benchmarks.low_dose_lengths --fresh 240 60 --factors 1.1 --out "$OUT" && "$(dirname "$PWF")/python" -m benchmarks.low_dose_lengths --scale im-alpha --factors 4 --out "$OUT" ;;
-  low-dose-reference) for a in "10 --factors 1" "100 --factors 1" "10 --factors 1 1.1 --nsr-floor 0" "100 --factors 1 --nsr-floor 0" "100 --factors 1 --nsr-floor 1e-4"; do "$(dirname "$PWF")/python" -m benchmarks.low_dose_lengths --reference-dose $a --out "$OUT" || exit 1; done ;;
+  low-dose-reference) for a in "10 --factors 1" "100 --factors 1" "10 --factors 1 1.1 --nsr-floor 0" "100 --factors 1 --nsr-floor 0" "100 --factors 1 --nsr-floor 1e-4" "10 --factors 1 --min-photons 3e4 --max-photons inf" "10 --factors 1 --min-photons 3e4 --max-photons inf --nsr-floor 0"; do "$(dirname "$PWF")/python" -m benchmarks.low_dose_lengths --reference-dose $a --out "$OUT" || exit 1; done ;;
   coherence-sensitivity-low-dose) for n in 1000 100; do "$(dirname "$PWF")/python" -m benchmarks.coherence_sensitivity --photons $n --out "$OUT" || exit 1; done ;;
   coarse-start) "$(dirname "$PWF")/python" -m benchmarks.coarse_start --curve --out "$OUT" ;;
   probe-window) "$(dirname "$PWF")/python" -m benchmarks.probe_window --out "$OUT" ;;

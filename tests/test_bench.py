@@ -639,6 +639,20 @@ def test_low_dose_reference_reports_each_factor_against_the_runs_own_factor_one(
     write_report([r | {"nsr_floor": "sample"} for r in ones], str(tmp_path), "test device", "cmd", "low_dose_reference")
     text = (tmp_path / "low_dose_reference.md").read_text()  # the default floor: nothing to name
     assert text.startswith("# A reference at 10x the sample's dose at low dose") and "nsr_floor" not in text
+    write_report(ones, str(tmp_path), "test device", "cmd", "high_dose_reference_floor0")
+    text = (tmp_path / "high_dose_reference_floor0.md").read_text()  # --min-photons: bright scenes
+    assert text.startswith("# A reference at 10x the sample's dose, the Wiener NSR floored at 0.0001, at high dose")
+    assert "with a high dose" in text
+
+
+def test_low_dose_lengths_refuses_a_dose_band_or_floor_without_a_reference_dose(capsys):
+    """``--min-photons`` and ``--nsr-floor`` ask about the reference's dose: alone they are refused."""
+    from benchmarks.low_dose_lengths import main
+
+    for option in (["--min-photons", "3e4"], ["--nsr-floor", "0"]):
+        with pytest.raises(SystemExit):
+            main(["--report-only", *option])
+        assert "go with --reference-dose" in capsys.readouterr().err
 
 
 def test_reference_at_dose_is_the_scenes_diffuser_with_noise_falling_as_the_dose_rises():
