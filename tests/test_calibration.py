@@ -597,6 +597,16 @@ def test_relative_noise_variance_reads_one_over_the_photons_per_pixel():
     assert calibration.relative_noise_variance(np.zeros((16, 16))) == 0.0
 
 
+@pytest.mark.gpu
+def test_relative_noise_variance_reads_a_device_frame_where_it_lies(cupy):
+    """The sample's noise for the Wiener floor is read on the device (no copy to the host per
+    diffuser estimate), and reads as on the host."""
+    sim = SpeckleSimulator(SpeckleSetup(shape=(64, 96), photons=500.0), seed=4)
+    frame = sim.reference()
+    on_device = calibration.relative_noise_variance(cupy.asarray(frame))
+    assert on_device == pytest.approx(calibration.relative_noise_variance(frame), rel=1e-5)
+
+
 def test_the_sample_floor_takes_the_sample_images_noise_where_it_is_twice_the_references():
     """``diffuser_nsr_floor="sample"`` (:func:`~pwf_dask.calibration.diffuser.wiener_nsr`): the
     Wiener NSR is the reference's own while the sample image's noise is up to twice the

@@ -199,11 +199,12 @@ def white_noise_floor(img: np.ndarray) -> float:
     """Photon noise per frequency bin (the units of :func:`speckle_spectrum`): the median of the
     periodogram beyond the Nyquist circle, where the IOTF has removed all speckle, over ln 2 (a
     white-noise periodogram is exponential: its median alone left 31 % of the floor)."""
+    xp = get_array_module(img)  # NumPy or CuPy: a device frame is read where it lies
     ny, nx = img.shape
-    spec = np.abs(np.fft.fft2(img - img.mean())) ** 2 / (ny * nx)
+    spec = xp.abs(xp.fft.fft2(img - img.mean())) ** 2 / (ny * nx)
     v, u = np.fft.fftfreq(ny)[:, None], np.fft.fftfreq(nx)[None, :]
-    corners = np.broadcast_to((u * u + v * v) > 0.3, spec.shape)
-    return float(np.median(spec[corners])) / np.log(2.0)
+    corners = xp.asarray(np.broadcast_to((u * u + v * v) > 0.3, spec.shape))
+    return float(xp.median(spec[corners])) / np.log(2.0)
 
 
 def photon_noise_pct(image, mean_reference: float) -> float:
@@ -514,6 +515,7 @@ def relative_noise_variance(image) -> float:
     per pixel for Poisson counts, whatever the units (flat-corrected, attenuated by a sample,
     averaged from many flats). :func:`white_noise_floor` of the image over its mean; 0 for an
     image of no mean."""
-    img = np.asarray(to_numpy(image), np.float64)
+    xp = get_array_module(image)
+    img = xp.asarray(image, dtype=xp.float64)
     mean = float(img.mean())
     return white_noise_floor(img / mean) if mean > 0 else 0.0
