@@ -781,7 +781,7 @@ def retrieve_projection(
         )
         # what the background fit took from the solver's psi: a scan's warm start adds it back
         | {"background_planes": planes}
-        | _alpha_rule_record(pair.phase_sensitivity, guard, pair.requested),
+        | _alpha_rule_record(pair.phase_sensitivity, guard, pair.requested, pair.attenuation_contrast),
         background=mask,
     )
     return _with_sensitivity(
@@ -789,15 +789,23 @@ def retrieve_projection(
     )
 
 
-def _alpha_rule_record(phase_sensitivity: float | None, guard: dict | None = None, requested: str = "auto") -> dict:
+def _alpha_rule_record(
+    phase_sensitivity: float | None,
+    guard: dict | None = None,
+    requested: str = "auto",
+    attenuation_contrast: float | None = None,
+) -> dict:
     """The rule's entries where ``alpha="sensitivity"`` set alpha (:func:`_resolved_alpha`):
-    the sensitivity, and where the diffuser models' probe decided whether its lower Im(alpha)
-    stands with the single-material fit (:func:`_guarded_alpha`), their residual ratio and what
-    gave way where it did not (:func:`alpha_rule_gives_up` of ``diffuser_model=requested``):
-    the alpha, kept at the default, or ``"auto"``'s fit, for zero phase."""
+    the sensitivity and the attenuation contrast, and where the diffuser models' probe decided
+    whether its lower Im(alpha) stands with the single-material fit (:func:`_guarded_alpha`),
+    their residual ratio and what gave way where it did not (:func:`alpha_rule_gives_up` of
+    ``diffuser_model=requested``): the alpha, kept at the default, or ``"auto"``'s fit, for
+    zero phase."""
     if phase_sensitivity is None:
         return {}
     record = {"alpha_rule": "sensitivity", "phase_sensitivity": phase_sensitivity}
+    if attenuation_contrast is not None:
+        record["attenuation_contrast"] = attenuation_contrast
     if guard is not None:
         ratio = model_probe_ratio(guard)
         gave_up = None if alpha_rule_holds(ratio) else alpha_rule_gives_up(requested)
@@ -856,6 +864,7 @@ class _Pair:
     bad_pixels: int
     background_mask: Any = None
     phase_sensitivity: float | None = None  # measured for alpha="sensitivity" only
+    attenuation_contrast: float | None = None  # the same
 
 
 def _prepared_pair(
@@ -877,7 +886,7 @@ def _prepared_pair(
     bad = _checked_bad_pixels(bad_pixels, y.shape, xp)
     coherence = _coherence(ref, geometry, opts)
     opts = _resolved_grids(opts, geometry, coherence)
-    opts, phase_s = _resolved_alpha(opts, ref, geometry)
+    opts, phase_s, contrast = _resolved_alpha(opts, y, ref, geometry)
     fft = FFT.for_module(xp, opts.fft_workers)
     scale = float(xp.mean(ref))
     if not scale > 0:
@@ -905,19 +914,24 @@ def _prepared_pair(
         0 if bad is None else int(bad.sum()),
         background_mask,
         phase_s,
+        contrast,
     )
     return pair, opts, prior, kappa
 
 
-def _resolved_alpha(opts: RetrievalOptions, ref, geometry: Geometry) -> tuple[RetrievalOptions, float | None]:
-    """``alpha="sensitivity"`` as a number, from the reference's phase sensitivity
-    (:func:`pwf_dask.pwf.solver.sensitivity_alpha`), and that sensitivity; other alphas as given."""
+def _resolved_alpha(
+    opts: RetrievalOptions, y, ref, geometry: Geometry
+) -> tuple[RetrievalOptions, float | None, float | None]:
+    """``alpha="sensitivity"`` as a number, from the reference's phase sensitivity and the
+    sample's attenuation contrast (:func:`pwf_dask.pwf.solver.sensitivity_alpha`), and those
+    two; other alphas as given (and None, None)."""
     if opts.alpha != "sensitivity":
-        return opts, None
+        return opts, None, None
     s = sensitivity.phase_sensitivity(
         ref, optics.wavelength_m(geometry.energy_eV), geometry.diffuser_detector_distance_m, geometry.pixel_size_m
     )
-    return replace(opts, alpha=solver.sensitivity_alpha(s)), s
+    contrast = sensitivity.attenuation_contrast(y, ref)
+    return replace(opts, alpha=solver.sensitivity_alpha(s, attenuation_contrast=contrast)), s, contrast
 
 
 #: Iterations of each diffuser model that ``diffuser_model="auto"`` runs on the sample where
@@ -1110,7 +1124,8 @@ def _guarded_alpha(
         return opts, residuals
     if alpha_rule_gives_up(pair.requested) == "model":
         return replace(opts, diffuser_model="zero-phase"), residuals
-    return replace(opts, alpha=solver.DEFAULT_ALPHA), residuals
+    # the default Im(alpha); Re(alpha) as the sample's attenuation set it
+    return replace(opts, alpha=complex(complex(opts.alpha).real, solver.DEFAULT_ALPHA.imag)), residuals
 
 
 def alpha_rule_gives_up(requested: str) -> str:

@@ -670,3 +670,27 @@ def test_reference_at_dose_is_the_scenes_diffuser_with_noise_falling_as_the_dose
         noise = reference_at_dose(setup, 3, k) - clean
         assert np.var(noise) / np.mean(clean) * k * setup.photons == pytest.approx(1.0, rel=0.1)
     assert not np.array_equal(reference_at_dose(setup, 3, 1.0), sim.reference)
+
+
+def test_absorbing_samples_scales_only_the_beta_and_bounds_it_by_the_most_absorbing_element():
+    """The benchmark's scene at its own attenuation range is the random geometry's own, to the
+    photon (the noise drawn in the same order); scaled, the phase stays and the attenuation
+    spans the range asked. beta / delta bound: the rare earths' 0.197 at 10 keV; the stability
+    map's 10x beads (0.10 at 10 keV) lie within it, 500x cellulose at 22 keV beyond."""
+    from benchmarks.absorbing_samples import absorbing_scene, largest_beta_over_delta, physical
+    from benchmarks.random_scenes import draw_scene
+
+    setup, sim, background = draw_scene(3)
+    own = float(sim.attenuation.max() - sim.attenuation.min())
+    _, sample, reference, phase, attenuation, mask, factor = absorbing_scene(3, own)
+    assert factor == pytest.approx(1.0)
+    np.testing.assert_array_equal(sample, sim.sample)
+    np.testing.assert_array_equal(reference, sim.reference)
+    np.testing.assert_array_equal(mask, background)
+    _, dark, _, phase2, attenuation2, _, factor2 = absorbing_scene(3, 2.0)
+    assert factor2 == pytest.approx(2.0 / own) and np.ptp(attenuation2) == pytest.approx(2.0)
+    np.testing.assert_allclose(phase2, phase)
+    assert dark.mean() < 0.8 * sample.mean()
+    assert largest_beta_over_delta(10.0) == pytest.approx(0.197, abs=0.003)
+    assert physical({"energy_keV": 10.0, "beta_factor": 10.0})
+    assert not physical({"energy_keV": 22.1, "beta_factor": 500.0})

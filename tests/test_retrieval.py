@@ -502,6 +502,16 @@ def test_sensitivity_alpha_keeps_the_default_where_the_data_see_the_phase_as_the
     assert solver.sensitivity_alpha(0.0) == pytest.approx(floor) == solver.sensitivity_alpha(-1e-3)
 
 
+def test_sensitivity_alpha_lowers_re_alpha_only_where_the_sample_absorbs_strongly():
+    """Up to the tuned attenuation contrast Re(alpha) is the default's, bit for bit; above, it
+    falls as (tuned / contrast)^2, whatever Im(alpha) the phase sensitivity sets."""
+    tuned, s = solver.TUNED_ATTENUATION_CONTRAST, solver.TUNED_PHASE_SENSITIVITY
+    assert solver.sensitivity_alpha(s, attenuation_contrast=tuned) == solver.DEFAULT_ALPHA
+    assert solver.sensitivity_alpha(s, attenuation_contrast=0.1) == solver.DEFAULT_ALPHA
+    assert solver.sensitivity_alpha(s, attenuation_contrast=2 * tuned) == pytest.approx(complex(0.025, 0.05))
+    assert solver.sensitivity_alpha(s / 100, attenuation_contrast=4 * tuned) == pytest.approx(complex(0.1 / 16, 0.005))
+
+
 @pytest.mark.slow
 def test_alpha_from_the_phase_sensitivity_reads_the_phase_the_default_holds_back_at_20_kev():
     """The paper's 256^2 scene at 20 keV: the data see the phase 46x more weakly than at 10 keV
@@ -535,6 +545,45 @@ def test_alpha_from_the_phase_sensitivity_keeps_the_default_on_the_papers_scene(
     assert given.parameters["alpha_rule"] == "given"
     assert "alpha_rule_model_ratio" not in rule.parameters  # nothing lowered, nothing probed
     np.testing.assert_array_equal(rule.phase, given.phase)
+
+
+@pytest.mark.slow
+def test_re_alpha_falls_where_the_sample_absorbs_strongly_and_the_phase_no_longer_makes_up_its_edges():
+    """The stability map's scene (256^2, 1e4 ph/px, true lengths) with 10x its beads' beta
+    (intensity down to 0.047 through the largest): Re(alpha) 0.1 damps the beads' attenuation
+    and the phase makes it up, a lens over each bead (error 0.264, bead +398 %, misfit 1.66: the
+    same from the true psi). The rule reads the attenuation contrast (1.17) and lowers Re(alpha);
+    the phase then holds and the fit reaches the sample's data (docs/methods.md, "Re(alpha) and
+    a strongly absorbing sample")."""
+    from benchmarks.stability import Scene
+
+    setup = SpeckleSetup(shape=(256, 256))
+    phantom = default_phantom(256 * setup.pixel_size_m, np.random.default_rng(1))
+    scene = Scene(setup, phantom, 1.0, 1, 0, absorption_factor=10.0)
+    sample, reference = (a[0] for a in scene.images(setup.photons, 1, seed=7))
+    geometry = {
+        "energy_eV": setup.energy_eV,
+        "pixel_size_m": setup.pixel_size_m,
+        "sample_diffuser_distance_m": setup.sample_diffuser_distance_m,
+        "diffuser_detector_distance_m": setup.diffuser_detector_distance_m,
+        "coherence_length_x_m": setup.coherence_length_x_m,
+        "coherence_length_y_m": setup.coherence_length_y_m,
+        "background_mask": scene.background,
+    }
+    found = {}
+    for alpha in ("sensitivity", solver.DEFAULT_ALPHA):
+        res = retrieve_projection(sample, reference, alpha=alpha, **geometry)
+        err = errors(res.phase, res.attenuation, scene.phase, scene.attenuation, scene.background, scene.bead)
+        found[alpha] = (res.parameters, err)
+    p, err = found["sensitivity"]
+    assert 1.0 < p["attenuation_contrast"] < 1.4
+    assert complex(p["alpha"]) == solver.sensitivity_alpha(
+        p["phase_sensitivity"], attenuation_contrast=p["attenuation_contrast"]
+    )
+    assert complex(p["alpha"]).real < 0.05 and err["phase_error"] < 0.15 and p["sample_misfit"] < 1.3
+    fixed_p, fixed = found[solver.DEFAULT_ALPHA]
+    assert fixed["phase_error"] > 0.2 and fixed["bead_contrast_error"] > 3 * err["bead_contrast_error"] > 0
+    assert fixed_p["sample_misfit"] > 1.3 and "attenuation_contrast" not in fixed_p
 
 
 def _random_scene(i: int, **options):

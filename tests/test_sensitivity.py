@@ -229,8 +229,9 @@ def test_sample_misfit_reads_the_noise_scale_inside_the_sample_against_its_backg
 
 def test_pwf_warns_where_its_model_does_not_reach_a_steep_samples_data():
     """The stability map's 100 pi point on a 128^2 frame (PWF, lengths calibrated): the phase is
-    lost (gain 0.14) with the speckle moved far more than the shift limit, and the fit leaves
-    3.6 times the background's misfit in the sample; at 3 pi it fits to the noise (0.95)."""
+    lost with the speckle moved far more than the shift limit, and the fit leaves 2.1 times the
+    background's misfit in the sample (3.6 before session 105 lowered Re(alpha) by the thick
+    sample's attenuation contrast); at 3 pi it fits to the noise (0.95)."""
     from benchmarks.sensitivity_check import STABILITY_RUN
     from benchmarks.stability import stability_map
 
@@ -239,5 +240,23 @@ def test_pwf_warns_where_its_model_does_not_reach_a_steep_samples_data():
     )
     limits = SensitivityLimits()
     assert steep["phase_gain"] < 0.5 and steep["speckle_shift_over_grain"] > 5 * limits.min_shift_over_grain
-    assert steep["sample_misfit"] > 2 * limits.max_sample_misfit and steep["flagged"]
+    assert steep["sample_misfit"] > 1.5 * limits.max_sample_misfit and steep["flagged"]
     assert mild["holds"] and mild["sample_misfit"] < 1.1 and not mild["flagged"]
+
+
+@pytest.mark.parametrize("photons", [1e3, 1e5])
+def test_attenuation_contrast_reads_the_samples_absorption_not_its_speckle_or_dose(rng, photons):
+    """A broad disc of amplitude attenuation 1.2 on a speckle of 3-px grains: the contrast reads
+    the disc's 1.2 at either dose (the speckle cancels in the ratio of local means); a
+    sample image that absorbs nothing reads the noise only."""
+    reference = gaussian_speckle(rng, 1.5, 0.3)
+    yy, xx = np.indices(reference.shape)
+    disc = np.hypot(yy - 128, xx - 128) < 60
+    attenuation = 1.2 * ndimage.gaussian_filter(disc.astype(float), 2.0)
+
+    def noisy(image):
+        return rng.poisson(photons * np.clip(image, 0, None)) / photons
+
+    found = sensitivity.attenuation_contrast(noisy(reference * np.exp(-2 * attenuation)), noisy(reference))
+    assert found == pytest.approx(1.2, rel=0.05)
+    assert sensitivity.attenuation_contrast(noisy(reference), noisy(reference)) < 0.1

@@ -805,11 +805,34 @@ def test_sensitivity_alpha_is_one_for_the_scan_and_recorded(tiny_scan, tmp_path,
     workflow.retrieve_scan(tiny_scan, recon, alpha="sensitivity", **FAST)
     assert "for the data's phase sensitivity" in capsys.readouterr().err
     attrs = xr.open_zarr(recon).attrs
-    s = attrs["phase_sensitivity"]
-    assert attrs["alpha_rule"] == "sensitivity" and s > 0
-    assert attrs["alpha"] == str(solver.sensitivity_alpha(s)).strip("()")
+    s, contrast = attrs["phase_sensitivity"], attrs["attenuation_contrast"]
+    assert attrs["alpha_rule"] == "sensitivity" and s > 0 and 0 < contrast < solver.TUNED_ATTENUATION_CONTRAST
+    assert attrs["alpha"] == str(solver.sensitivity_alpha(s, attenuation_contrast=contrast)).strip("()")
     workflow.retrieve_scan(tiny_scan, recon, alpha="sensitivity", **FAST)  # resumed: same parameters
     assert xr.open_zarr(recon).attrs["alpha"] == attrs["alpha"]
+
+
+def test_a_strongly_absorbing_scan_lowers_one_re_alpha_for_every_projection(tiny_scan, tmp_path, monkeypatch, capsys):
+    """The scan's attenuation contrast, the largest of position 0's projections at 0, 1/3 and 2/3
+    of the angles, sets Re(alpha) once (twice the tuned contrast here: a quarter of 0.1), says
+    so and records it; a given alpha measures nothing."""
+    reads = []
+    measure = workflow.calibration.attenuation_contrast
+    monkeypatch.setattr(
+        workflow.calibration, "attenuation_contrast", lambda *a: reads.append(a[0].shape) or 2 * measure(*a)
+    )
+    contrast = workflow.scan_attenuation_contrast(*workflow._scan_frames(tiny_scan), None)
+    assert len(reads) == 3
+    monkeypatch.setattr(workflow, "scan_attenuation_contrast", lambda *a: 2 * solver.TUNED_ATTENUATION_CONTRAST)
+    recon = tmp_path / "r.zarr"
+    workflow.retrieve_scan(tiny_scan, recon, alpha="sensitivity", **FAST)
+    attrs = xr.open_zarr(recon).attrs
+    twice = 2 * solver.TUNED_ATTENUATION_CONTRAST
+    assert complex(attrs["alpha"]).real == pytest.approx(0.025) and attrs["attenuation_contrast"] == twice
+    assert f"and the sample's attenuation contrast {twice:.3g} (Re(alpha) lowered)" in capsys.readouterr().err
+    given = tmp_path / "given.zarr"
+    workflow.retrieve_scan(tiny_scan, given, alpha=0.1 + 0.05j, **FAST)
+    assert xr.open_zarr(given).attrs["attenuation_contrast"] == "n/a" and contrast > 0
 
 
 def test_a_scan_checks_the_alpha_rules_lower_alpha_once_against_the_diffuser_models(

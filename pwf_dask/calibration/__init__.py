@@ -36,6 +36,7 @@ from pwf_dask.calibration.drift import shift_transmission, speckle_drift_px, uns
 from pwf_dask.calibration.sensitivity import (
     Sensitivity,
     SensitivityLimits,
+    attenuation_contrast,
     phase_sensitivity,
     position_disagreement,
     sample_misfit,
@@ -53,6 +54,7 @@ __all__ = [
     "DiffuserEstimate",
     "Sensitivity",
     "SensitivityLimits",
+    "attenuation_contrast",
     "choose_diffuser_model",
     "coherence_lengths",
     "ctf_phase_delay",

@@ -31,7 +31,7 @@ from pwf_dask.physics.optics import check_detector_blur, wavelength_m
 from pwf_dask.pipeline import estimate
 from pwf_dask.pipeline.cluster import Runner, check_scheduler, worker_fft_threads
 from pwf_dask.pwf.model import check_sample_field_grid
-from pwf_dask.pwf.solver import DEFAULT_ALPHA, PAPER_ALPHA, sensitivity_alpha
+from pwf_dask.pwf.solver import DEFAULT_ALPHA, PAPER_ALPHA, TUNED_ATTENUATION_CONTRAST, sensitivity_alpha
 from pwf_dask.retrieval import (
     DIFFUSER_FIELD_UPSAMPLE,
     METHODS,
@@ -437,9 +437,12 @@ def choose_scan_alpha(scan_path, recon_path, options: dict, device: str, coheren
     return complex(res.parameters["alpha"]), json.dumps(res.parameters["alpha_trials"])
 
 
-def guarded_scan_alpha(frames, recon_path, phase_s: float, options: dict, device: str, coherence):
+def guarded_scan_alpha(
+    frames, recon_path, phase_s: float, options: dict, device: str, coherence, contrast: float = 0.0
+):
     """alpha="sensitivity" for a scan (``frames`` as :func:`_scan_frames` opened it): the rule's
-    alpha for the scan's phase sensitivity (:func:`pwf_dask.pwf.solver.sensitivity_alpha`), one
+    alpha for the scan's phase sensitivity and attenuation ``contrast``
+    (:func:`pwf_dask.pwf.solver.sensitivity_alpha`, :func:`scan_attenuation_contrast`), one
     for every projection. Where the rule lowered it and the single-material diffuser fit misfits
     position 0's projection at the middle angle more than zero phase
     (:func:`pwf_dask.retrieval.alpha_rule_holds`, checked once as a projection checks it), what
@@ -453,7 +456,9 @@ def guarded_scan_alpha(frames, recon_path, phase_s: float, options: dict, device
     101), keeps its alpha, so that it resumes."""
     from pwf_dask import retrieval
 
-    alpha = sensitivity_alpha(phase_s)
+    alpha = sensitivity_alpha(phase_s, attenuation_contrast=contrast)
+    # where the fit gives way to the default Im(alpha), Re(alpha) stays the sample's
+    default = complex(alpha.real, DEFAULT_ALPHA.imag)
     if not retrieval.guards_alpha_rule(phase_s, _absorption_model(frames[0].attrs, options)):
         return alpha, "n/a", None
     stored = _stored_alpha_rule(recon_path)
@@ -464,11 +469,11 @@ def guarded_scan_alpha(frames, recon_path, phase_s: float, options: dict, device
         ratio = retrieval.model_probe_ratio(_probed_models(frames, options, device, coherence[0]))
     if retrieval.alpha_rule_holds(ratio):
         return alpha, ratio, None
-    if stored.get("alpha") == str(DEFAULT_ALPHA).strip("()"):  # made before "auto" gave the fit up
-        return DEFAULT_ALPHA, ratio, None
+    if stored.get("alpha") == str(default).strip("()"):  # made before "auto" gave the fit up
+        return default, ratio, None
     if retrieval.alpha_rule_gives_up(options.get("diffuser_model", DEFAULTS.diffuser_model)) == "model":
         return alpha, ratio, "zero-phase"
-    return DEFAULT_ALPHA, ratio, None
+    return default, ratio, None
 
 
 def _stored_alpha_rule(recon_path) -> dict:
@@ -523,6 +528,24 @@ def scan_phase_sensitivity(g, info, geometry: Geometry, flat, dark, corrected, o
         for p in range(info.n_positions)
     ]
     return float(np.mean(values))
+
+
+#: the fractions of the angles at which :func:`scan_attenuation_contrast` reads position 0
+CONTRAST_ANGLE_FRACTIONS = (0.0, 1 / 3, 2 / 3)
+
+
+def scan_attenuation_contrast(g, flat, dark, corrected, outlier_sigma) -> float:
+    """The scan's attenuation contrast (:func:`pwf_dask.calibration.attenuation_contrast`): the
+    largest of position 0's projections at a third of the angles apart, against its reference.
+    ``alpha="sensitivity"`` lowers one Re(alpha) for every projection from it (a tomogram's
+    slices share their regularization), so the most absorbing of the three views sets it."""
+    reference = _read_reference(g, 0, flat, dark, corrected, outlier_sigma)
+    n = g["projections"].shape[1]
+    values = []
+    for index in sorted({int(f * n) for f in CONTRAST_ANGLE_FRACTIONS}):
+        sample = _read_corrected(g, "projections", (0, index), flat, dark, corrected)
+        values.append(calibration.attenuation_contrast(repair_outliers(sample, outlier_sigma)[0], reference))
+    return float(max(values))
 
 
 def _peak_rss_mb() -> float:
@@ -623,6 +646,7 @@ def retrieve_scan(
         # the tasks are given the lengths: they must know whether the pixel's blur is in them
         options["coherence_includes_pixel_blur"] = fits[0][0].includes_pixel_blur
     alpha_rule, alpha_trials, phase_s, model_ratio, instead = "given", "n/a", "n/a", "n/a", None
+    contrast = "n/a"
     if method == "pwf":
         phase_s = scan_phase_sensitivity(g, info, geometry, flat, dark, corrected, outlier_sigma)
     if alpha_c == "discrepancy" and method == "pwf":
@@ -633,7 +657,10 @@ def retrieve_scan(
     elif alpha_c == "sensitivity" and method == "pwf":
         probe = dict(precision=precision, outlier_sigma=outlier_sigma, **options)
         frames = (g, flat, dark, corrected)  # as opened above: flat and dark read once
-        alpha_c, model_ratio, instead = guarded_scan_alpha(frames, recon_path, phase_s, probe, device, coherence)
+        contrast = scan_attenuation_contrast(g, flat, dark, corrected, outlier_sigma)
+        alpha_c, model_ratio, instead = guarded_scan_alpha(
+            frames, recon_path, phase_s, probe, device, coherence, contrast
+        )
         alpha_rule = "sensitivity"
     elif alpha_c in ("discrepancy", "sensitivity"):  # the speckle-tracking baselines have no alpha
         alpha_c, alpha_rule = PAPER_ALPHA, "n/a"
@@ -648,6 +675,7 @@ def retrieve_scan(
         "alpha_rule": alpha_rule,
         "alpha_trials": alpha_trials,
         "phase_sensitivity": phase_s,
+        "attenuation_contrast": contrast,
         "alpha_rule_model_ratio": model_ratio,
         "step": float(step),
         "tol": float(tol),
@@ -832,6 +860,9 @@ def _model_record(method: str, options: dict, energy_eV: float) -> dict:
 def _alpha_rule_line(params: dict) -> str:
     """What ``alpha="sensitivity"`` chose for the scan, in one line."""
     line = f"alpha: {params['alpha']} for the data's phase sensitivity {params['phase_sensitivity']:.3g}"
+    contrast = params.get("attenuation_contrast", "n/a")
+    if isinstance(contrast, float) and contrast > TUNED_ATTENUATION_CONTRAST:
+        line += f" and the sample's attenuation contrast {contrast:.3g} (Re(alpha) lowered)"
     ratio = params.get("alpha_rule_model_ratio", "n/a")
     if ratio == "n/a":
         return line

@@ -77,6 +77,16 @@ DISCREPANCY_TARGET = 1.0
 #: 128^2, 512^2; 1e2-1e4 ph/px), so they keep it exactly; 20 keV reads 0.0004.
 TUNED_PHASE_SENSITIVITY = 0.015
 MIN_ALPHA_SCALE = 0.01
+#: The sample's attenuation contrast (:func:`pwf_dask.calibration.sensitivity.attenuation_contrast`)
+#: up to which ``alpha="sensitivity"`` keeps the default Re(alpha); above, it scales it by
+#: (this / contrast)^2. The stability map's scene wants Re(alpha) 0.1 at 1-3x its beads' beta
+#: (contrast 0.14-0.37), 0.03 at 5x (0.60), 0.02-0.03 at 7x, 0.01 at 10x (1.17) and 0.003 at
+#: 20x (2.26) (docs/methods.md, "Re(alpha) and a strongly absorbing sample"). On 24 random
+#: geometries with their beta scaled up (benchmarks/absorbing_samples.py) 0.4 held 12 and 13 at
+#: attenuation ranges 1 and 2 where 0.7 held 10 and 9, losing none. It binds on 2 of the 240
+#: random geometries as drawn (8 keV, 0.65): their phase errors 0.199 -> 0.203 and 0.270 -> 0.263,
+#: their attenuation errors 0.23 -> 0.34.
+TUNED_ATTENUATION_CONTRAST = 0.4
 
 #: A gradient restart after two steps psi_k - psi_{k-1} this anti-aligned (cosine below it)
 #: was caused by a mode too stiff for eta (see :func:`pwf`, "Step"): eta is halved.
@@ -458,6 +468,8 @@ def sensitivity_alpha(
     base: complex = DEFAULT_ALPHA,
     tuned: float = TUNED_PHASE_SENSITIVITY,
     min_scale: float = MIN_ALPHA_SCALE,
+    attenuation_contrast: float = 0.0,
+    tuned_contrast: float = TUNED_ATTENUATION_CONTRAST,
 ) -> complex:
     """Im(alpha) balanced against how strongly the data see the phase: the rule of
     ``alpha="sensitivity"`` (an option, not in the paper).
@@ -474,13 +486,26 @@ def sensitivity_alpha(
     "Im(alpha) from the data's phase sensitivity"). The default since session 91, once the
     background of a projection was found whole (:func:`pwf_dask.physics.background.projection_background`):
     on the wide 430 x 2220 strip of thick rods the rule's phase then holds as the fixed alpha's
-    does (rms error 8.05 / 8.10 rad). Re(alpha) stays: the attenuation is seen through the mean
-    intensity, not the speckle's shift. At or above ``tuned`` ``base`` is returned exactly.
+    does (rms error 8.05 / 8.10 rad).
+
+    Re(alpha) is seen through the mean intensity, not the speckle's shift, and S does not move
+    it. It damps the attenuation outside the STF by a fixed fraction; where the sample absorbs
+    strongly, the intensity that fraction leaves unexplained is large and the phase makes it up
+    (a lens over each dark bead): the stability map's 10x absorption failed at 0.264 with
+    misfit 1.66, and started from the true psi PWF walks to the same answer. Above
+    ``tuned_contrast`` of the sample's ``attenuation_contrast``
+    (:func:`pwf_dask.calibration.sensitivity.attenuation_contrast`) Re(alpha) is scaled by
+    (tuned_contrast / contrast)^2, Tikhonov's noise-over-signal squared (docs/methods.md,
+    "Re(alpha) and a strongly absorbing sample"). At or above ``tuned`` and at or below
+    ``tuned_contrast`` ``base`` is returned exactly.
     """
+    real = base.real
+    if attenuation_contrast > tuned_contrast:
+        real *= (tuned_contrast / attenuation_contrast) ** 2
     if not phase_sensitivity < tuned:
-        return complex(base)
+        return complex(real, base.imag)
     scale = max(math.sqrt(max(phase_sensitivity, 0.0) / tuned), min_scale)
-    return complex(base.real, base.imag * scale)
+    return complex(real, base.imag * scale)
 
 
 @dataclass
