@@ -39,6 +39,8 @@
 #                      high_dose_reference*.*: the scenes from 3e4 ph/px up at 10x, the default floor and 0)
 #   absorbing_samples_0-159.*, _160-239.* ~30 min each: absorbing-samples, the random geometries that hold, their
 #                      beta scaled to an attenuation range of 1 and 2: PWF (Re(alpha) by the contrast, and 0.1) and UMPA K=1
+#   holds_by_dose.*, _misread.csv ~3 min: holds-by-dose, after sensitivity-check: the random geometries' S again at
+#                      1e5 ph/px, holds per decade of dose with the sensitivity limit apart, the misread scenes re-run
 #   detector_psf.*     ~15 min: PWF (calibrated, given the blurred lengths) and UMPA K=1 under the detector's own blur
 #   upstream_distance.* ~15 min: an upstream diffuser (L1 = 0) at 0-100 mm, PWF at each assumed distance: what selects it
 #   position_agreement.* ~25 min: two diffuser positions' retrievals of the random geometries: do they agree where PWF fails?
@@ -95,6 +97,7 @@ case "${1:-all}" in
   random-scenes) "$(dirname "$PWF")/python" -m benchmarks.random_scenes --out "$OUT" ;;
   sensitivity-check) "$(dirname "$PWF")/python" -m benchmarks.sensitivity_check --out "$OUT" ;;
   random-scenes-held-out) "$(dirname "$PWF")/python" -m benchmarks.random_scenes --first 160 --scenes 80 --out "$OUT" && "$(dirname "$PWF")/python" -m benchmarks.sensitivity_check --add-scenes --out "$OUT" ;;
+  holds-by-dose) "$(dirname "$PWF")/python" -m benchmarks.holds_by_dose --out "$OUT" ;;
   absorbing-samples) for r in "0 159" "160 239"; do set -- $r; "$(dirname "$PWF")/python" -m benchmarks.absorbing_samples --first "$1" --last "$2" --out "$OUT" || exit 1; done ;;
   detector-psf) "$(dirname "$PWF")/python" -m benchmarks.detector_psf --out "$OUT" ;;
   upstream-distance) "$(dirname "$PWF")/python" -m benchmarks.upstream_distance --out "$OUT" ;;
@@ -110,6 +113,6 @@ case "${1:-all}" in
   fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --part all --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-edge cylinder-draws-single-material cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity coherence-sensitivity-low-dose low-dose-lengths low-dose-reference absorbing-samples detector-psf upstream-distance alpha-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes random-scenes-held-out sensitivity-check position-agreement diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-edge cylinder-draws-single-material cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity coherence-sensitivity-low-dose low-dose-lengths low-dose-reference absorbing-samples detector-psf upstream-distance alpha-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes random-scenes-held-out sensitivity-check holds-by-dose position-agreement diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
   *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|cylinder-draws|cylinder-draws-why|cylinder-draws-edge|cylinder-draws-single-material|cylinder-draws-1e3|cylinder-draws-96rows|coherence-sensitivity|coherence-sensitivity-low-dose|low-dose-lengths|low-dose-reference|detector-psf|upstream-distance|alpha-sensitivity|position-agreement|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|random-scenes-held-out|sensitivity-check|sensitivity-check-stability|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
 esac

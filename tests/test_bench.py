@@ -694,3 +694,32 @@ def test_absorbing_samples_scales_only_the_beta_and_bounds_it_by_the_most_absorb
     assert largest_beta_over_delta(10.0) == pytest.approx(0.197, abs=0.003)
     assert physical({"energy_keV": 10.0, "beta_factor": 10.0})
     assert not physical({"energy_keV": 22.1, "beta_factor": 500.0})
+
+
+def test_holds_by_dose_counts_the_sensitivity_limit_apart_from_the_dose():
+    """Per decade of dose: a refused scene counts as refused, a scene below the limit by its
+    clean S is kept out of 'hold above it', and a scene whose S as read and clean S fall on
+    either side of the limit is listed as misread (a refused one never is)."""
+    from benchmarks.holds_by_dose import dose_table, misread_scenes
+
+    def row(scene, photons, holds, own, clean, refused=False):
+        return {
+            "scene": scene,
+            "photons": photons,
+            "refused": refused,
+            "holds": holds,
+            "phase_sensitivity": own,
+            "phase_sensitivity_clean": clean,
+        }
+
+    rows = [
+        row(1, 2e2, True, 1e-3, 1e-3),
+        row(2, 2e2, False, 0.0, 4e-4),  # read as none by noise: misread
+        row(3, 5e2, False, "", 1e-6, refused=True),
+        row(4, 3e5, False, 1e-6, 1e-6),  # below the limit at high dose
+        row(5, 3e5, True, 1e-2, 1e-2),
+    ]
+    table = dose_table(rows, 3e-5)
+    assert table[2] == "| 1e+02-1e+03 | 3 | 1 | 1 / 1 | 1 of 2 | 1 of 2 |"
+    assert table[5] == "| 1e+05-1e+06 | 2 | 0 | 1 / 1 | 1 of 1 | 1 of 2 |"
+    assert misread_scenes(rows, 3e-5) == [2]
