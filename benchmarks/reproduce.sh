@@ -39,6 +39,7 @@
 #                      high_dose_reference*.*: the scenes from 3e4 ph/px up at 10x, the default floor and 0)
 #   absorbing_samples_0-159.*, _160-239.* ~30 min each: absorbing-samples, the random geometries that hold, their
 #                      beta scaled to an attenuation range of 1 and 2: PWF (Re(alpha) by the contrast, and 0.1) and UMPA K=1
+#   bead_absorption.*  ~3 min: bead-absorption, the map's scene at 0-10x its beta, PWF by the rule and at fixed Re(alpha)
 #   holds_by_dose.*, _misread.csv ~3 min: holds-by-dose, after sensitivity-check: the random geometries' S again at
 #                      1e5 ph/px, holds per decade of dose with the sensitivity limit apart, the misread scenes re-run
 #   detector_psf.*     ~15 min: PWF (calibrated, given the blurred lengths) and UMPA K=1 under the detector's own blur
@@ -97,6 +98,7 @@ case "${1:-all}" in
   random-scenes) "$(dirname "$PWF")/python" -m benchmarks.random_scenes --out "$OUT" ;;
   sensitivity-check) "$(dirname "$PWF")/python" -m benchmarks.sensitivity_check --out "$OUT" ;;
   random-scenes-held-out) "$(dirname "$PWF")/python" -m benchmarks.random_scenes --first 160 --scenes 80 --out "$OUT" && "$(dirname "$PWF")/python" -m benchmarks.sensitivity_check --add-scenes --out "$OUT" ;;
+  bead-absorption) "$(dirname "$PWF")/python" -m benchmarks.bead_absorption --out "$OUT" ;;
   holds-by-dose) "$(dirname "$PWF")/python" -m benchmarks.holds_by_dose --out "$OUT" ;;
   absorbing-samples) for r in "0 159" "160 239"; do set -- $r; "$(dirname "$PWF")/python" -m benchmarks.absorbing_samples --first "$1" --last "$2" --out "$OUT" || exit 1; done ;;
   detector-psf) "$(dirname "$PWF")/python" -m benchmarks.detector_psf --out "$OUT" ;;
@@ -113,6 +115,6 @@ case "${1:-all}" in
   fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --part all --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
-    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-edge cylinder-draws-single-material cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity coherence-sensitivity-low-dose low-dose-lengths low-dose-reference absorbing-samples detector-psf upstream-distance alpha-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes random-scenes-held-out sensitivity-check holds-by-dose position-agreement diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
+    for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-edge cylinder-draws-single-material cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity coherence-sensitivity-low-dose low-dose-lengths low-dose-reference absorbing-samples bead-absorption detector-psf upstream-distance alpha-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes random-scenes-held-out sensitivity-check holds-by-dose position-agreement diffuser-models fbp perscan field-grid fft-lengths paper-figures fullwidth; do "$0" "$b"; done ;;
   *) echo "usage: $0 [accuracy|accuracy-beads|stability|iteration|scan|bead|defects|authors|drift|calibration|calibration-sweep|geometry|frame-size|frame-grits|frame-defaults|frame-bead-grains|frame-camera|edge-step|cylinder-rows|cylinder-why|cylinder-draws|cylinder-draws-why|cylinder-draws-edge|cylinder-draws-single-material|cylinder-draws-1e3|cylinder-draws-96rows|coherence-sensitivity|coherence-sensitivity-low-dose|low-dose-lengths|low-dose-reference|detector-psf|upstream-distance|alpha-sensitivity|position-agreement|coarse-start|probe-window|probe-iterations|demo-dose|random-scenes|random-scenes-held-out|sensitivity-check|sensitivity-check-stability|diffuser-models|fbp|perscan|field-grid|fft-lengths|paper-figures|fullwidth|warm-stop|all]" >&2; exit 2 ;;
 esac

@@ -399,7 +399,8 @@ def add_retrieval_options(p: argparse.ArgumentParser) -> None:
         "--alpha",
         default=str(DEFAULTS.alpha).strip("()"),
         help="regularization weights: 'sensitivity' (the default: 0.1+0.05j, docs/methods.md, with Im(alpha) "
-        "lowered where the data see the phase weakly: faint speckle, high energy; once per scan), a complex number, "
+        "lowered where the data see the phase weakly: faint speckle, high energy, and Re(alpha) where the sample "
+        "absorbs strongly; once per scan), a complex number (e.g. 0.03+0.05j for small dense inclusions), "
         "'paper' (0.1+0.01j) or 'discrepancy' (Im(alpha) by the discrepancy principle, once per scan)",
     )
     p.add_argument(
