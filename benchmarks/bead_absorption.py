@@ -43,10 +43,7 @@ def point_rows(absorption: float, re_alphas: list[float]) -> list[dict]:
     scene = Scene(setup, phantom, 1.0, 1, SEED, absorption)
     s, r = scene.images(setup.photons, 1, seed=SEED + 7)
     kw = dict(
-        energy_eV=setup.energy_eV,
-        pixel_size_m=setup.pixel_size_m,
-        sample_diffuser_distance_m=setup.sample_diffuser_distance_m,
-        diffuser_detector_distance_m=setup.diffuser_detector_distance_m,
+        setup.geometry(),
         background_mask=scene.background,
         coherence_length_x_m=setup.coherence_length_x_m,
         coherence_length_y_m=setup.coherence_length_y_m,

@@ -474,14 +474,8 @@ def test_an_absorbing_beads_overshoot_falls_with_re_alpha_at_a_sample_wide_cost(
     cyl = Phantom(cylinder_radius_m=0.5 * 0.72 * 0.8 * 128 * p)
     scene = stability.Scene(setup, replace(cyl, spheres=(stability.single_bead(cyl, 16 * p),)), 1.0, 1, 0, 3.0)
     s, r = scene.images(setup.photons, 1, seed=7)
-    geometry = dict(
-        energy_eV=setup.energy_eV,
-        pixel_size_m=p,
-        sample_diffuser_distance_m=setup.sample_diffuser_distance_m,
-        diffuser_detector_distance_m=setup.diffuser_detector_distance_m,
-        coherence_length_x_m=setup.coherence_length_x_m,
-        coherence_length_y_m=setup.coherence_length_y_m,
-    )
+    geometry = setup.geometry()
+    geometry.update(coherence_length_x_m=setup.coherence_length_x_m, coherence_length_y_m=setup.coherence_length_y_m)
     errs = {}
     for re_alpha in (0.1, 0.03):
         res = retrieve_projection(
