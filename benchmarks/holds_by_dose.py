@@ -130,14 +130,14 @@ def misread_rows(rows: list[dict], limit: float) -> list[dict]:
 
 def misread_table(rows: list[dict]) -> list[str]:
     lines = [
-        "| scene | ph/px | S as read | phase error, gain | S clean | phase error, gain |",
-        "|---:|---:|---:|---|---:|---|",
+        "| scene | ph/px | S as read | Im(alpha) | phase error, gain | S clean | Im(alpha) | phase error, gain |",
+        "|---:|---:|---:|---:|---|---:|---:|---|",
     ]
     for read, clean in zip(rows[::2], rows[1::2]):
         lines.append(
-            f"| {read['scene']} | {read['photons']:.0f} | {read['phase_sensitivity']:.2g} "
+            f"| {read['scene']} | {read['photons']:.0f} | {read['phase_sensitivity']:.2g} | {read['alpha_imag']:.2g} "
             f"| {read['phase_error']:.3f}, {read['phase_gain']:.2f} | {clean['phase_sensitivity']:.2g} "
-            f"| {clean['phase_error']:.3f}, {clean['phase_gain']:.2f} |"
+            f"| {clean['alpha_imag']:.2g} | {clean['phase_error']:.3f}, {clean['phase_gain']:.2f} |"
         )
     return lines
 
@@ -159,7 +159,8 @@ def write_report(rows: list[dict], misread: list[dict], out_dir: str | Path, com
         f"{sum(r['holds'] for r in below)} hold.",
         f"- Scenes whose own-dose S and clean S fall on different sides of the limit: "
         f"{', '.join(map(str, misread_scenes(rows, limit))) or 'none'}; PWF on each with S as read",
-        "and with S patched to the clean value (Im(alpha) follows it):",
+        "and with S patched to the clean value (Im(alpha) follows it; where S reads none, the rule",
+        "takes its noise bound from 1e-4 up, solver.rule_sensitivity, session 106):",
         "",
         *misread_table(misread),
     ]

@@ -21,13 +21,16 @@ autocorrelation, pixels) and the reference's visibility (rms / mean); and for PW
 check of the data measured (``speckle_shift_over_grain`` of the retrieved phase,
 ``speckle_visibility_measured``, ``sample_misfit``, ``flagged``: benchmarks/sensitivity_check.py).
 
-    python -m benchmarks.random_scenes [--scenes 80] [--first 0] [--discrepancy] [--out benchmarks/results]
+    python -m benchmarks.random_scenes [--scenes 80] [--first 0] [--discrepancy] [--rerun SCENE ...]
+                                       [--out benchmarks/results]
 
 ``--first N`` runs scenes N to N + scenes - 1, drawn from the same ranges, and names its files
 ``random_scenes_<N>-<last>``: scenes 160-239 are session 102's held-out set, run once after
 every choice they check had been made (docs/validation.md, "A fresh held-out set").
 ``--discrepancy`` adds PWF with ``alpha="discrepancy"`` and a line comparing it with the
-default alpha (2.3x PWF's time).
+default alpha (2.3x PWF's time). ``--rerun`` runs the scenes named again (every method) and
+keeps the set's other rows: after a change that binds on those scenes alone (session 106: the
+alpha rule's noise bound, scenes 53 and 237).
 
 Writes ``random_scenes.md``, ``.csv`` and ``.png`` (about 18 min for 80 scenes on 2 cores).
 """
@@ -43,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.reporting import device_name, write_rows_csv
+from benchmarks.reporting import device_name, read_rows_csv, write_rows_csv
 from benchmarks.stability import PHASE_ERROR_THRESHOLD, displacement_px, errors, sensitivity_columns, speckle_grain_px
 from pwf_dask.physics import optics
 from pwf_dask.retrieval import retrieve_projection
@@ -293,11 +296,37 @@ def main(argv=None) -> list[dict]:
     ap.add_argument("--first", type=int, default=0, help="the first scene (0: random_scenes.*; else a set of its own)")
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument("--discrepancy", action="store_true", help="also PWF with alpha='discrepancy'")
+    add_rerun_argument(ap)
     args = ap.parse_args(argv)
     methods = METHODS + ((DISCREPANCY,) if args.discrepancy else ())
     name = results_name(args.first, args.scenes)
     report = partial(write_report, name=name)
-    return run_and_report(range(args.first, args.first + args.scenes), methods, args.out, name, report, plot)
+    kept = rows_kept_but(args.out, f"{name}.csv", args.rerun)
+    scenes = range(args.first, args.first + args.scenes)
+    return run_and_report(scenes, methods, args.out, name, report, plot, kept)
+
+
+def add_rerun_argument(ap: argparse.ArgumentParser) -> None:
+    """``--rerun SCENE ...`` (:func:`rows_kept_but`)."""
+    ap.add_argument(
+        "--rerun",
+        type=int,
+        nargs="+",
+        default=(),
+        metavar="SCENE",
+        help="run only these scenes again, after a change that only they show; the others' rows are kept",
+    )
+
+
+def rows_kept_but(out_dir, csv_name: str, rerun: Sequence[int]) -> list[dict]:
+    """The rows of ``csv_name`` in ``out_dir`` but those of the scenes in ``rerun``, which
+    :func:`run_and_report` then runs again; nothing kept where nothing is re-run."""
+    if not rerun:
+        return []
+    path = Path(out_dir) / csv_name
+    if not path.exists():
+        raise ValueError(f"--rerun re-runs part of a set, but {path} does not exist: run the set")
+    return [r for r in read_rows_csv(out_dir, csv_name) if r["scene"] not in set(rerun)]
 
 
 def run_and_report(
@@ -315,6 +344,7 @@ def run_and_report(
             f"scene {i}: " + ", ".join(f"{r['method']} {r['phase_error']:.3f} {_flag(r)}" for r in scene_rows),
             flush=True,
         )
+    rows.sort(key=lambda r: r["scene"])  # stable: a re-run scene's rows go back in their place
     out = write_rows_csv(out_dir, f"{name}.csv", rows)
     report(rows, out, device_name(np))
     figure(rows, Path(out, f"{name}.png"))

@@ -28,12 +28,14 @@ A scene holds where its relative phase error inside the sample stays below 0.25 
 ``random_scenes``). Reported per set: how many hold and fail, how many of each the warning
 flags, and the flagged and unflagged failures' gains.
 
-    python -m benchmarks.sensitivity_check [--scenes 240] [--out benchmarks/results] [--only-stability | --add-scenes]
+    python -m benchmarks.sensitivity_check [--scenes 240] [--out benchmarks/results]
+                                           [--only-stability | --add-scenes | --rerun SCENE ...]
 
 Writes ``sensitivity_check.md``, ``.csv``, ``.png``, ``sensitivity_check_energies.csv`` and
 ``sensitivity_check_stability.csv`` (about 33 min for scenes 0-159 and the sweep on 2 cores, about
 17 more for 160-239, 23 more for the map's 44 points; ``--only-stability`` runs those alone and
-reads the rest back; ``--add-scenes`` runs only the scenes missing from the rows in ``--out``).
+reads the rest back; ``--add-scenes`` runs only the scenes missing from the rows in ``--out``;
+``--rerun`` runs the scenes named again and keeps every other row).
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.random_scenes import run_and_report
+from benchmarks.random_scenes import add_rerun_argument, rows_kept_but, run_and_report
 from benchmarks.reporting import device_name, read_rows_csv, write_rows_csv
 from benchmarks.stability import AXES, PHASE_ERROR_THRESHOLD, PWF_ONLY_AXES, errors, sensitivity_columns, stability_map
 from pwf_dask.calibration import SensitivityLimits
@@ -296,7 +298,14 @@ def main(argv=None) -> list[dict]:
         help="run only the random scenes below --scenes that --out's rows lack (PWF's rows of a random_scenes_N-M.csv "
         "there count: the same run); the rest is read back from --out",
     )
+    add_rerun_argument(ap)
     args = ap.parse_args(argv)
+    if args.rerun:
+        energies = read_rows_csv(args.out, "sensitivity_check_energies.csv")
+        stability = read_rows_csv(args.out, "sensitivity_check_stability.csv")
+        kept = rows_kept_but(args.out, "sensitivity_check.csv", args.rerun)
+        report = partial(write_report, energies=energies, stability=stability)
+        return run_and_report(range(args.scenes), ("pwf",), args.out, "sensitivity_check", report, plot, kept)
     if args.add_scenes:
         energies = read_rows_csv(args.out, "sensitivity_check_energies.csv")
         stability = read_rows_csv(args.out, "sensitivity_check_stability.csv")

@@ -781,7 +781,9 @@ def retrieve_projection(
         )
         # what the background fit took from the solver's psi: a scan's warm start adds it back
         | {"background_planes": planes}
-        | _alpha_rule_record(pair.phase_sensitivity, guard, pair.requested, pair.attenuation_contrast),
+        | _alpha_rule_record(
+            pair.phase_sensitivity, guard, pair.requested, pair.attenuation_contrast, pair.phase_sensitivity_bound
+        ),
         background=mask,
     )
     return _with_sensitivity(
@@ -794,18 +796,21 @@ def _alpha_rule_record(
     guard: dict | None = None,
     requested: str = "auto",
     attenuation_contrast: float | None = None,
+    noise_bound: float | None = None,
 ) -> dict:
     """The rule's entries where ``alpha="sensitivity"`` set alpha (:func:`_resolved_alpha`):
-    the sensitivity and the attenuation contrast, and where the diffuser models' probe decided
-    whether its lower Im(alpha) stands with the single-material fit (:func:`_guarded_alpha`),
-    their residual ratio and what gave way where it did not (:func:`alpha_rule_gives_up` of
-    ``diffuser_model=requested``): the alpha, kept at the default, or ``"auto"``'s fit, for
-    zero phase."""
+    the sensitivity, its noise bound where it read none, and the attenuation contrast, and
+    where the diffuser models' probe decided whether its lower Im(alpha) stands with the
+    single-material fit (:func:`_guarded_alpha`), their residual ratio and what gave way where
+    it did not (:func:`alpha_rule_gives_up` of ``diffuser_model=requested``): the alpha, kept
+    at the default, or ``"auto"``'s fit, for zero phase."""
     if phase_sensitivity is None:
         return {}
     record = {"alpha_rule": "sensitivity", "phase_sensitivity": phase_sensitivity}
     if attenuation_contrast is not None:
         record["attenuation_contrast"] = attenuation_contrast
+    if noise_bound is not None:
+        record["phase_sensitivity_noise_bound"] = noise_bound
     if guard is not None:
         ratio = model_probe_ratio(guard)
         gave_up = None if alpha_rule_holds(ratio) else alpha_rule_gives_up(requested)
@@ -865,6 +870,14 @@ class _Pair:
     background_mask: Any = None
     phase_sensitivity: float | None = None  # measured for alpha="sensitivity" only
     attenuation_contrast: float | None = None  # the same
+    phase_sensitivity_bound: float | None = None  # where that S reads none: its noise bound
+
+    def rule_sensitivity(self) -> float | None:
+        """The S the alpha rule used (:func:`pwf_dask.pwf.solver.rule_sensitivity`); None where
+        alpha was not the rule's."""
+        if self.phase_sensitivity is None:
+            return None
+        return solver.rule_sensitivity(self.phase_sensitivity, self.phase_sensitivity_bound)
 
 
 def _prepared_pair(
@@ -886,7 +899,7 @@ def _prepared_pair(
     bad = _checked_bad_pixels(bad_pixels, y.shape, xp)
     coherence = _coherence(ref, geometry, opts)
     opts = _resolved_grids(opts, geometry, coherence)
-    opts, phase_s, contrast = _resolved_alpha(opts, y, ref, geometry)
+    opts, phase_s, contrast, phase_s_bound = _resolved_alpha(opts, y, ref, geometry)
     fft = FFT.for_module(xp, opts.fft_workers)
     scale = float(xp.mean(ref))
     if not scale > 0:
@@ -915,23 +928,31 @@ def _prepared_pair(
         background_mask,
         phase_s,
         contrast,
+        phase_s_bound,
     )
     return pair, opts, prior, kappa
 
 
 def _resolved_alpha(
     opts: RetrievalOptions, y, ref, geometry: Geometry
-) -> tuple[RetrievalOptions, float | None, float | None]:
+) -> tuple[RetrievalOptions, float | None, float | None, float | None]:
     """``alpha="sensitivity"`` as a number, from the reference's phase sensitivity and the
     sample's attenuation contrast (:func:`pwf_dask.pwf.solver.sensitivity_alpha`), and those
-    two; other alphas as given (and None, None)."""
+    two and, where S reads none, its noise bound (:func:`pwf_dask.pwf.solver.rule_sensitivity`);
+    other alphas as given (and None, None, None)."""
     if opts.alpha != "sensitivity":
-        return opts, None, None
-    s = sensitivity.phase_sensitivity(
-        ref, optics.wavelength_m(geometry.energy_eV), geometry.diffuser_detector_distance_m, geometry.pixel_size_m
+        return opts, None, None, None
+    optics_args = (
+        optics.wavelength_m(geometry.energy_eV),
+        geometry.diffuser_detector_distance_m,
+        geometry.pixel_size_m,
     )
+    s = sensitivity.phase_sensitivity(ref, *optics_args)
+    # where S reads none, whether the photon noise hides it (solver.rule_sensitivity)
+    bound = sensitivity.phase_sensitivity_noise_bound(ref, *optics_args) if s <= 0 else None
     contrast = sensitivity.attenuation_contrast(y, ref)
-    return replace(opts, alpha=solver.sensitivity_alpha(s, attenuation_contrast=contrast)), s, contrast
+    alpha = solver.sensitivity_alpha(solver.rule_sensitivity(s, bound), attenuation_contrast=contrast)
+    return replace(opts, alpha=alpha), s, contrast, bound
 
 
 #: Iterations of each diffuser model that ``diffuser_model="auto"`` runs on the sample where
@@ -1117,7 +1138,7 @@ def _guarded_alpha(
     residuals that decided (None where nothing did: the rule's alpha not lowered, zero phase).
     ``"auto"``'s probe, where it ran, decides: it took the fit for a residual under half zero
     phase's."""
-    if not guards_alpha_rule(pair.phase_sensitivity, opts.diffuser_model):
+    if not guards_alpha_rule(pair.rule_sensitivity(), opts.diffuser_model):
         return opts, None
     residuals = probe.residuals_pct if probe else _probe_residuals(pair, opts, geometry, {"single-material": t})[0]
     if alpha_rule_holds(model_probe_ratio(residuals)):

@@ -723,3 +723,18 @@ def test_holds_by_dose_counts_the_sensitivity_limit_apart_from_the_dose():
     assert table[2] == "| 1e+02-1e+03 | 3 | 1 | 1 / 1 | 1 of 2 | 1 of 2 |"
     assert table[5] == "| 1e+05-1e+06 | 2 | 0 | 1 / 1 | 1 of 1 | 1 of 2 |"
     assert misread_scenes(rows, 3e-5) == [2]
+
+
+def test_a_rerun_keeps_every_other_scenes_rows_and_puts_the_new_ones_back_in_place(tmp_path):
+    """``--rerun``: the rows of the scenes named are dropped (run again by run_and_report, which
+    sorts the rows back by scene); re-running part of a set that was never written is refused."""
+    from benchmarks.random_scenes import rows_kept_but
+    from benchmarks.reporting import write_rows_csv
+
+    rows = [{"scene": s, "method": m, "phase_error": 0.1 * s} for s in (1, 2, 3) for m in ("pwf", "umpa")]
+    write_rows_csv(tmp_path, "set.csv", rows)
+    kept = rows_kept_but(tmp_path, "set.csv", [2])
+    assert [(r["scene"], r["method"]) for r in kept] == [(1, "pwf"), (1, "umpa"), (3, "pwf"), (3, "umpa")]
+    assert rows_kept_but(tmp_path, "set.csv", []) == []
+    with pytest.raises(ValueError, match="does not exist"):
+        rows_kept_but(tmp_path, "other.csv", [2])

@@ -9,6 +9,7 @@ from pwf_dask import retrieve_projection
 from pwf_dask.calibration import (
     SensitivityLimits,
     phase_sensitivity,
+    phase_sensitivity_noise_bound,
     position_disagreement,
     sensitivity,
     speckle_grain_px,
@@ -59,6 +60,22 @@ def test_phase_sensitivity_is_the_speckle_gradients_power_times_the_shift_per_ra
     noisy = rng.poisson(1000 * clean) / 1000.0
     assert phase_sensitivity(noisy, wavelength, distance, pixel) == pytest.approx(expected, rel=0.1)
     assert phase_sensitivity(np.ones((64, 64)), wavelength, distance, pixel) == 0.0
+
+
+def test_phase_sensitivitys_noise_bound_is_two_standard_errors_of_its_estimate(rng):
+    """On flat fields with photon noise alone (S = 0) the estimate scatters about zero with the
+    standard error the bound is twice: over 300 frames of 64^2 at 200 ph/px it reads 0 about
+    half the time (clipped), above the bound about 2.3 % of the time (measured 3 %) and above
+    half of it (one standard error) about 16 % (measured 15 %). The bound goes as 1 / photons."""
+    optics_args = (1e-10, 0.05, 1e-6)
+    frames = [rng.poisson(200.0, (64, 64)) / 200.0 for _ in range(300)]
+    reads = np.array([phase_sensitivity(f, *optics_args) for f in frames])
+    bounds = np.array([phase_sensitivity_noise_bound(f, *optics_args) for f in frames])
+    assert 0.35 < np.mean(reads == 0.0) < 0.65
+    assert np.mean(reads > bounds) < 0.06
+    assert 0.08 < np.mean(reads > 0.5 * bounds) < 0.26
+    bright = np.mean([phase_sensitivity_noise_bound(rng.poisson(2e4, (64, 64)) / 2e4, *optics_args) for _ in range(30)])
+    assert bounds.mean() / bright == pytest.approx(100.0, rel=0.1)
 
 
 def test_speckle_shift_of_a_phase_cone_is_lambda_l2_gradient_over_2_pi_p():
@@ -205,6 +222,8 @@ def test_the_check_runs_on_the_device_and_gives_the_host_numbers(cupy, rng):
     assert host.sample_misfit > 1.3 and "misfit inside the sample" in host.warning
     for name, value in host.parameters().items():
         assert device.parameters()[name] == (pytest.approx(value, rel=1e-9) if isinstance(value, float) else value)
+    bound = phase_sensitivity_noise_bound(reference, 1.24e-10, 0.02, 0.65e-6)
+    assert phase_sensitivity_noise_bound(on(reference), 1.24e-10, 0.02, 0.65e-6) == pytest.approx(bound, rel=1e-9)
 
 
 def test_sample_misfit_reads_the_noise_scale_inside_the_sample_against_its_background(rng):

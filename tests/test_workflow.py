@@ -807,9 +807,29 @@ def test_sensitivity_alpha_is_one_for_the_scan_and_recorded(tiny_scan, tmp_path,
     attrs = xr.open_zarr(recon).attrs
     s, contrast = attrs["phase_sensitivity"], attrs["attenuation_contrast"]
     assert attrs["alpha_rule"] == "sensitivity" and s > 0 and 0 < contrast < solver.TUNED_ATTENUATION_CONTRAST
+    assert attrs["phase_sensitivity_noise_bound"] == "n/a"  # measured only where S reads none
     assert attrs["alpha"] == str(solver.sensitivity_alpha(s, attenuation_contrast=contrast)).strip("()")
     workflow.retrieve_scan(tiny_scan, recon, alpha="sensitivity", **FAST)  # resumed: same parameters
     assert xr.open_zarr(recon).attrs["alpha"] == attrs["alpha"]
+
+
+def test_a_scan_whose_references_read_no_sensitivity_takes_their_noise_bound(tiny_scan, tmp_path, monkeypatch, capsys):
+    """Where every position's reference reads S = 0 (forced here), the scan measures the noise
+    bound of each (the mean is recorded) and, from NOISE_HIDDEN_SENSITIVITY up, sets Im(alpha)
+    from it and says so; below, the floor's alpha stays."""
+    monkeypatch.setattr(workflow.calibration, "phase_sensitivity", lambda *a: 0.0)
+    for bound in (3e-3, 0.5 * solver.NOISE_HIDDEN_SENSITIVITY):
+        monkeypatch.setattr(workflow.calibration, "phase_sensitivity_noise_bound", lambda *a, b=bound: b)
+        recon = tmp_path / f"{bound}.zarr"
+        workflow.retrieve_scan(tiny_scan, recon, alpha="sensitivity", **FAST)
+        attrs = xr.open_zarr(recon).attrs
+        assert attrs["phase_sensitivity"] == 0.0 and attrs["phase_sensitivity_noise_bound"] == bound
+        taken = solver.rule_sensitivity(0.0, bound)
+        assert complex(attrs["alpha"]) == solver.sensitivity_alpha(
+            taken, attenuation_contrast=attrs["attenuation_contrast"]
+        )
+        said = "none above the photon noise" in capsys.readouterr().err
+        assert said == (bound >= solver.NOISE_HIDDEN_SENSITIVITY)
 
 
 def test_a_strongly_absorbing_scan_lowers_one_re_alpha_for_every_projection(tiny_scan, tmp_path, monkeypatch, capsys):

@@ -105,20 +105,32 @@ class Sensitivity:
         }
 
 
-def _noise_free_spectrum(reference):
-    """Power spectrum (rfft2 layout) of the reference's relative contrast with the white
-    photon-noise floor subtracted and its mean removed: an unbiased estimate of the speckle's
-    own spectrum, whose sums (variance, autocorrelation) carry no photon noise."""
+def _periodogram_and_floor(reference):
+    """The reference's relative contrast's power spectrum (rfft2 layout), its white
+    photon-noise floor and how many corner bins that floor was read from."""
     xp = get_array_module(reference)
     r = xp.asarray(reference, dtype=xp.float64)
     r = r / r.mean() - 1.0
     ny, nx = r.shape
     spec = xp.abs(xp.fft.rfft2(r)) ** 2 / (ny * nx)
-    v, u = xp.fft.fftfreq(ny)[:, None], xp.fft.rfftfreq(nx)[None, :]
     # the IOTF leaves no speckle beyond the Nyquist circle: there the periodogram is white
     # noise, exponentially distributed, so its median is ln 2 of the floor
-    corners = xp.broadcast_to(u * u + v * v > 0.3, spec.shape)
-    noise = float(xp.median(spec[corners])) / np.log(2.0) if bool(corners.any()) else 0.0
+    corners = _frequency_squared(spec.shape, ny, nx, xp) > 0.3
+    n = int(corners.sum())
+    noise = float(xp.median(spec[corners])) / np.log(2.0) if n else 0.0
+    return spec, noise, n
+
+
+def _frequency_squared(shape, ny: int, nx: int, xp):
+    v, u = xp.fft.fftfreq(ny)[:, None], xp.fft.rfftfreq(nx)[None, :]
+    return xp.broadcast_to(u * u + v * v, shape)
+
+
+def _noise_free_spectrum(reference):
+    """Power spectrum (rfft2 layout) of the reference's relative contrast with the white
+    photon-noise floor subtracted and its mean removed: an unbiased estimate of the speckle's
+    own spectrum, whose sums (variance, autocorrelation) carry no photon noise."""
+    spec, noise, _ = _periodogram_and_floor(reference)
     # not clipped at zero: where there is no speckle, half the bins lie below the floor, and
     # clipping them would leave 37 % of the noise in every sum over the spectrum
     spec = spec - noise
@@ -128,12 +140,17 @@ def _noise_free_spectrum(reference):
 
 def _real_sum(spec, nx: int) -> float:
     """Sum over the full 2-D spectrum of an rfft2-layout half (the columns that stand for two)."""
-    xp = get_array_module(spec)
-    weight = xp.full(spec.shape[1], 2.0)
+    return float((spec * _column_weight(spec.shape[1], nx, get_array_module(spec))).sum())
+
+
+def _column_weight(columns: int, nx: int, xp):
+    """How many bins of the full spectrum each rfft-half column stands for (two, save the zero
+    and, for even ``nx``, the Nyquist column)."""
+    weight = xp.full(columns, 2.0)
     weight[0] = 1.0
     if nx % 2 == 0:
         weight[-1] = 1.0
-    return float((spec * weight).sum())
+    return weight
 
 
 def speckle_visibility(reference) -> float:
@@ -175,10 +192,44 @@ def phase_sensitivity(reference, wavelength_m: float, distance_m: float, pixel_s
     xp = get_array_module(reference)
     spec = _noise_free_spectrum(reference)
     ny, nx = reference.shape
-    v, u = xp.fft.fftfreq(ny)[:, None], xp.fft.rfftfreq(nx)[None, :]
-    gradient_power = _real_sum(spec * ((2 * np.pi) ** 2 * (u * u + v * v)), nx) / reference.size
-    shift_per_rad = wavelength_m * distance_m / (2 * np.pi * pixel_size_m**2)
-    return float(max(gradient_power, 0.0) * shift_per_rad**2)
+    gradient_power = _real_sum(spec * _gradient_weight(spec.shape, ny, nx, xp), nx) / reference.size
+    return float(max(gradient_power, 0.0) * _shift_per_rad(wavelength_m, distance_m, pixel_size_m) ** 2)
+
+
+def _gradient_weight(shape, ny: int, nx: int, xp):
+    """|2 pi f|^2 per bin: a gradient's power from the spectrum's."""
+    return (2 * np.pi) ** 2 * _frequency_squared(shape, ny, nx, xp)
+
+
+def _shift_per_rad(wavelength_m: float, distance_m: float, pixel_size_m: float) -> float:
+    return wavelength_m * distance_m / (2 * np.pi * pixel_size_m**2)
+
+
+#: how many standard errors of :func:`phase_sensitivity`'s estimate make
+#: :func:`phase_sensitivity_noise_bound`
+NOISE_BOUND_SIGMAS = 2.0
+
+
+def phase_sensitivity_noise_bound(reference, wavelength_m: float, distance_m: float, pixel_size_m: float) -> float:
+    """The largest phase sensitivity the reference's photon noise could hide:
+    :data:`NOISE_BOUND_SIGMAS` standard errors of :func:`phase_sensitivity`'s estimate (not in
+    the paper).
+
+    The estimate subtracts one noise floor, read as the median of n exponentially distributed
+    corner bins (relative standard error 1 / (ln 2 sqrt(n))), from every bin, so the floor's
+    error enters times the gradient weight |2 pi f|^2 summed over the spectrum; each bin's own
+    scatter (an exponential's: its floor) adds in quadrature. At 1e2-1e3 ph/px the floor's term
+    dominates and S can read 0 where the speckle carries 1e-4 to 1e-3: 4 of the 240 random
+    geometries, and the rule's Im(alpha) then sits at its floor and the phase overshoots
+    (:func:`pwf_dask.pwf.solver.rule_sensitivity`, docs/methods.md, "S read at low dose")."""
+    xp = get_array_module(reference)
+    spec, noise, n = _periodogram_and_floor(reference)
+    ny, nx = reference.shape
+    weight = _column_weight(spec.shape[1], nx, xp) * _gradient_weight(spec.shape, ny, nx, xp)
+    floor_error = float(weight.sum()) / (np.log(2.0) * np.sqrt(max(n, 1)))
+    scatter = float(np.sqrt(float((weight * weight).sum())))
+    sigma = noise / reference.size * float(np.hypot(floor_error, scatter))
+    return NOISE_BOUND_SIGMAS * sigma * _shift_per_rad(wavelength_m, distance_m, pixel_size_m) ** 2
 
 
 #: the percentiles whose spread :func:`attenuation_contrast` reads (the sample's darkest part

@@ -31,7 +31,14 @@ from pwf_dask.physics.optics import check_detector_blur, wavelength_m
 from pwf_dask.pipeline import estimate
 from pwf_dask.pipeline.cluster import Runner, check_scheduler, worker_fft_threads
 from pwf_dask.pwf.model import check_sample_field_grid
-from pwf_dask.pwf.solver import DEFAULT_ALPHA, PAPER_ALPHA, TUNED_ATTENUATION_CONTRAST, sensitivity_alpha
+from pwf_dask.pwf.solver import (
+    DEFAULT_ALPHA,
+    NOISE_HIDDEN_SENSITIVITY,
+    PAPER_ALPHA,
+    TUNED_ATTENUATION_CONTRAST,
+    rule_sensitivity,
+    sensitivity_alpha,
+)
 from pwf_dask.retrieval import (
     DIFFUSER_FIELD_UPSAMPLE,
     METHODS,
@@ -441,7 +448,8 @@ def guarded_scan_alpha(
     frames, recon_path, phase_s: float, options: dict, device: str, coherence, contrast: float = 0.0
 ):
     """alpha="sensitivity" for a scan (``frames`` as :func:`_scan_frames` opened it): the rule's
-    alpha for the scan's phase sensitivity and attenuation ``contrast``
+    alpha for the scan's phase sensitivity ``phase_s`` (as the rule takes it,
+    :func:`pwf_dask.pwf.solver.rule_sensitivity`) and attenuation ``contrast``
     (:func:`pwf_dask.pwf.solver.sensitivity_alpha`, :func:`scan_attenuation_contrast`), one
     for every projection. Where the rule lowered it and the single-material diffuser fit misfits
     position 0's projection at the middle angle more than zero phase
@@ -511,15 +519,18 @@ def _probed_models(frames, options: dict, device: str, coherence_xy) -> dict:
     )
 
 
-def scan_phase_sensitivity(g, info, geometry: Geometry, flat, dark, corrected, outlier_sigma) -> float:
+def scan_phase_sensitivity(g, info, geometry: Geometry, flat, dark, corrected, outlier_sigma, measure=None) -> float:
     """The scan's phase sensitivity: :func:`pwf_dask.calibration.phase_sensitivity` averaged over
     the positions' references. Measured for every PWF scan: ``alpha="sensitivity"`` sets one
     alpha from it for every projection (a tomogram's slices must share their regularization,
     :func:`pwf_dask.pwf.solver.sensitivity_alpha`), and the scan's warning compares it with
-    ``SensitivityLimits.min_phase_sensitivity``."""
+    ``SensitivityLimits.min_phase_sensitivity``. ``measure``: another measure of a reference
+    taken the same way (:func:`pwf_dask.calibration.phase_sensitivity_noise_bound`, where S
+    reads none)."""
     wavelength = wavelength_m(geometry.energy_eV)
+    measure = measure or calibration.phase_sensitivity
     values = [
-        calibration.phase_sensitivity(
+        measure(
             _read_reference(g, p, flat, dark, corrected, outlier_sigma),
             wavelength,
             geometry.diffuser_detector_distance_m,
@@ -646,9 +657,12 @@ def retrieve_scan(
         # the tasks are given the lengths: they must know whether the pixel's blur is in them
         options["coherence_includes_pixel_blur"] = fits[0][0].includes_pixel_blur
     alpha_rule, alpha_trials, phase_s, model_ratio, instead = "given", "n/a", "n/a", "n/a", None
-    contrast = "n/a"
+    contrast, noise_bound = "n/a", "n/a"
     if method == "pwf":
         phase_s = scan_phase_sensitivity(g, info, geometry, flat, dark, corrected, outlier_sigma)
+    if method == "pwf" and alpha_c == "sensitivity" and phase_s <= 0:  # does the noise hide it?
+        bound_of = calibration.phase_sensitivity_noise_bound
+        noise_bound = scan_phase_sensitivity(g, info, geometry, flat, dark, corrected, outlier_sigma, bound_of)
     if alpha_c == "discrepancy" and method == "pwf":
         probe = dict(method=method, max_iter=max_iter, tol=tol, gamma=gamma, step=step, precision=precision)
         probe.update(outlier_sigma=outlier_sigma, **options)
@@ -658,8 +672,9 @@ def retrieve_scan(
         probe = dict(precision=precision, outlier_sigma=outlier_sigma, **options)
         frames = (g, flat, dark, corrected)  # as opened above: flat and dark read once
         contrast = scan_attenuation_contrast(g, flat, dark, corrected, outlier_sigma)
+        rule_s = rule_sensitivity(phase_s, noise_bound if isinstance(noise_bound, float) else None)
         alpha_c, model_ratio, instead = guarded_scan_alpha(
-            frames, recon_path, phase_s, probe, device, coherence, contrast
+            frames, recon_path, rule_s, probe, device, coherence, contrast
         )
         alpha_rule = "sensitivity"
     elif alpha_c in ("discrepancy", "sensitivity"):  # the speckle-tracking baselines have no alpha
@@ -675,6 +690,7 @@ def retrieve_scan(
         "alpha_rule": alpha_rule,
         "alpha_trials": alpha_trials,
         "phase_sensitivity": phase_s,
+        "phase_sensitivity_noise_bound": noise_bound,
         "attenuation_contrast": contrast,
         "alpha_rule_model_ratio": model_ratio,
         "step": float(step),
@@ -860,6 +876,9 @@ def _model_record(method: str, options: dict, energy_eV: float) -> dict:
 def _alpha_rule_line(params: dict) -> str:
     """What ``alpha="sensitivity"`` chose for the scan, in one line."""
     line = f"alpha: {params['alpha']} for the data's phase sensitivity {params['phase_sensitivity']:.3g}"
+    bound = params.get("phase_sensitivity_noise_bound", "n/a")
+    if isinstance(bound, float) and bound >= NOISE_HIDDEN_SENSITIVITY:
+        line += f" (none above the photon noise, which could hide {bound:.3g}: that taken)"
     contrast = params.get("attenuation_contrast", "n/a")
     if isinstance(contrast, float) and contrast > TUNED_ATTENUATION_CONTRAST:
         line += f" and the sample's attenuation contrast {contrast:.3g} (Re(alpha) lowered)"
