@@ -62,6 +62,7 @@ def _scan_demo(args) -> int:
 
 def _simulate(args) -> int:
     from pwf_dask.simulation import simulate_scan
+    from pwf_dask.simulation.scan import OPTICS_FIELDS
 
     shape = tuple(args.shape) if args.shape else None
     path = simulate_scan(
@@ -85,6 +86,7 @@ def _simulate(args) -> int:
         beads=not args.no_beads,
         detector_blur_fwhm_m=args.detector_blur_um * 1e-6,
         detector_halo=(args.detector_halo[0], args.detector_halo[1] * 1e-6),
+        optics={k: getattr(args, k) for k in OPTICS_FIELDS if getattr(args, k) is not None},
     )
     print(f"wrote scan {path}")
     return 0
@@ -627,6 +629,24 @@ def _simulate_command(command) -> None:
         help="a fraction of the light the detector spreads over an exponential halo of this 1/e radius in "
         "um (scattered scintillation light; default 0 0: none)",
     )
+    beamline = s.add_argument_group("the beamline (default: the paper's; SI units, as `ingest` takes them)")
+    for flag, dest, what in (
+        ("--energy-eV", "energy_eV", "photon energy in eV (paper: 10000)"),
+        ("--pixel-size-m", "pixel_size_m", "effective pixel size in m (paper: 0.65e-6); the sample scales with it"),
+        (
+            "--sample-diffuser-distance-m",
+            "sample_diffuser_distance_m",
+            "L1 in m (paper: 3e-3; 0 with an upstream diffuser)",
+        ),
+        ("--diffuser-detector-distance-m", "diffuser_detector_distance_m", "L2 in m (paper: 20e-3)"),
+        (
+            "--coherence-length-x-m",
+            "coherence_length_x_m",
+            "the source's coherence length in m along x (paper: 3.47e-6)",
+        ),
+        ("--coherence-length-y-m", "coherence_length_y_m", "along y (paper: 4.31e-6); the scan records neither"),
+    ):
+        beamline.add_argument(flag, dest=dest, type=float, help=what)
     s.set_defaults(func=_simulate)
 
 

@@ -786,8 +786,16 @@ def retrieve_projection(
         ),
         background=mask,
     )
+    upstream_unknown = sample_diffuser_distance_m == 0 and not opts.diffuser_upstream_m
     return _with_sensitivity(
-        res, ref, energy_eV, pixel_size_m, diffuser_detector_distance_m, intensity=y / scale, excluded=excluded
+        res,
+        ref,
+        energy_eV,
+        pixel_size_m,
+        diffuser_detector_distance_m,
+        intensity=y / scale,
+        excluded=excluded,
+        upstream_unknown=upstream_unknown,
     )
 
 
@@ -828,6 +836,7 @@ def _with_sensitivity(
     diffuser_detector_distance_m,
     intensity=None,
     excluded=None,
+    upstream_unknown: bool = False,
 ):
     """``res`` with what the speckle could carry in its parameters
     (:func:`pwf_dask.calibration.sensitivity.assess`: the speckle's visibility and grain, the
@@ -846,6 +855,7 @@ def _with_sensitivity(
         residual=None if intensity is None else res.residual,
         intensity=intensity,
         excluded=excluded,
+        upstream_unknown=upstream_unknown,
     )
     res.parameters.update(found.parameters())
     return res

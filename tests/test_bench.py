@@ -738,3 +738,38 @@ def test_a_rerun_keeps_every_other_scenes_rows_and_puts_the_new_ones_back_in_pla
     assert rows_kept_but(tmp_path, "set.csv", []) == []
     with pytest.raises(ValueError, match="does not exist"):
         rows_kept_but(tmp_path, "other.csv", [2])
+
+
+def test_scan_optics_reads_a_run_against_its_truth_and_lists_its_warnings(tmp_path, monkeypatch):
+    """``benchmarks.scan_optics``: the command line run as a user would (simulate, then run with
+    the scene's run options), each error against the scan's recorded truth, the report one row
+    per run and the warnings ``run`` printed. A run here is the demo preset's, 3 angles."""
+    from benchmarks import scan_optics
+
+    monkeypatch.setattr(scan_optics, "ANGLES", 3)
+    options = ["--preset", "demo", "--energy-eV", "12000", "--axis-offset-px", "1.5"]
+    row = scan_optics.scene_row(tmp_path, "demo, told", "the demo at 12 keV", options, run_options=["--max-iter", "20"])
+    assert row["scene"] == "demo, told" and row["pixel_um"] == pytest.approx(0.65)
+    assert row["converged"].endswith("/3") and row["iterations_max"] <= 20
+    for key in ("bead_delta_err", "cylinder_delta_err", "coherence_x_err", "centre_err_px"):
+        assert np.isfinite(row[key])
+    assert abs(row["coherence_x_err"]) < 0.5  # calibrated, not given: the scan records only the truth
+    warned = {**row, "scene": "warned", "warnings": "the fit leaves over 1.3 times"}
+    scan_optics.write_report(tmp_path, [row, warned], argv=[])
+    text = (tmp_path / "scan_optics.md").read_text()
+    assert "| demo, told |" in text and "- warned: the fit leaves over 1.3 times" in text
+    assert len(list(csv.DictReader(open(tmp_path / "scan_optics.csv")))) == 2
+
+
+def test_fft_library_report_says_what_auto_takes_beside_each_rows_speed_up(tmp_path):
+    from benchmarks import fft_library
+
+    rows = [
+        {"frame": "512x512", "field_upsample": f, "grid": "560x560", "field_grid": g, "fft_workers": w}
+        | {"scipy_iteration_ms": 20.0, "mkl_iteration_ms": 20.0 / s, "mkl_speedup": s, "auto": "mkl"}
+        for f, g, w, s in ((1.0, "560x560", 1, 1.25), (1.5, "840x840", 2, 0.96))
+    ]
+    fft_library.write_report(tmp_path, rows, argv=[])
+    text = (tmp_path / "fft_library.md").read_text()
+    assert "| 512x512 | 840x840 (1.5x) | 2 | 20.0 | 20.8 | 0.96 | mkl |" in text
+    assert "Speed-up over all rows: 0.96 to 1.25, median 1.10." in text

@@ -34,6 +34,9 @@ def test_simulate_never_writes_over_an_existing_path(tmp_path, capsys):
         (["--axis-offset-px", "1e6"], "rotation_axis_offset_px"),  # the sample never in the frame
         (["--detector-blur-um", "-1"], "detector blur"),
         (["--detector-halo", "1", "5"], "halo fraction"),
+        (["--pixel-size-m", "0"], "pixel_size_m"),
+        (["--energy-eV", "inf"], "energy_eV"),
+        (["--sample-diffuser-distance-m", "2e-3", "--diffuser-upstream-m", "0.05"], "L1 = 0"),
     ],
 )
 def test_bad_simulate_option_is_refused_in_one_line_and_writes_nothing(tmp_path, capsys, option, named):

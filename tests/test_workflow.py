@@ -591,6 +591,31 @@ def test_simulate_with_the_diffuser_upstream_records_l1_zero(tmp_path):
     assert scan_io.open_scan(scan) is not None  # a valid CONTRACT §1 scan
 
 
+def test_simulate_at_another_beamline_records_its_optics_and_scales_the_sample(tmp_path):
+    """``simulate --energy-eV --pixel-size-m --...-distance-m --coherence-length-*-m``: the paper's
+    values given are the default bit for bit; others are recorded as the contract's attributes
+    (the lengths only as the truth), the phantom is drawn in metres from the frame (twice the
+    pixel, twice the cylinder), and a coarser coherence blurs the reference's speckle."""
+    args = ["--preset", "demo", "--shape", "32", "64", "--angles", "2", "--positions", "1", "--corrected"]
+    paper = ["--energy-eV", "10000", "--pixel-size-m", "0.65e-6", "--sample-diffuser-distance-m", "3e-3"]
+    paper += ["--diffuser-detector-distance-m", "0.02", "--coherence-length-x-m", "3.47e-6"]
+    other = ["--energy-eV", "20000", "--pixel-size-m", "1.3e-6", "--sample-diffuser-distance-m", "0"]
+    other += ["--diffuser-upstream-m", "0.05", "--diffuser-detector-distance-m", "0.1"]
+    blurred = ["--coherence-length-x-m", "12e-6", "--coherence-length-y-m", "12e-6"]
+    for name, extra in (("a", []), ("p", paper), ("o", other), ("b", blurred)):
+        assert cli.main(["simulate", str(tmp_path / f"{name}.zarr"), *args, *extra]) == 0
+    a, p, o, b = (xr.open_zarr(tmp_path / f"{n}.zarr") for n in "apob")
+    np.testing.assert_array_equal(a.projections.values, p.projections.values)
+    assert o.attrs["energy_eV"] == 20000 and o.attrs["pixel_size_m"] == 1.3e-6
+    assert o.attrs["sample_diffuser_distance_m"] == 0 and o.attrs["diffuser_detector_distance_m"] == 0.1
+    assert float(o.x[1] - o.x[0]) == pytest.approx(1.3e-6)
+    assert "coherence_length_x_m" not in b.attrs  # a user's scan calibrates them
+    assert b.attrs["simulation_coherence_length_x_m"] == 12e-6
+    radius = {n: phantom_from_json(d.attrs["simulation_phantom"]).cylinder_radius_m for n, d in (("a", a), ("o", o))}
+    assert radius["o"] == pytest.approx(2 * radius["a"])
+    assert b.reference.values.std() < 0.8 * a.reference.values.std()
+
+
 @pytest.mark.parametrize("photons", [1e4, 1e6])
 def test_simulated_raw_counts_fit_sixteen_bits_at_any_dose(tmp_path, photons):
     """Raw uint16 counts: at 1e4 ph/px one photon is one count; above 1.6e4 a count stands for

@@ -352,12 +352,13 @@ def assess(
     intensity=None,
     excluded=None,
     limits: SensitivityLimits = SensitivityLimits(),
+    upstream_unknown: bool = False,
 ) -> Sensitivity:
     """Visibility, grain and :func:`phase_sensitivity` of ``reference``, the speckle shift of
     ``phase`` over the pixels ``background`` (True = sample-free) leaves, the fit's
     :func:`sample_misfit` where the ``residual`` and the measured ``intensity`` are given, and a
     one-line warning where the data carry little of the phase or the model does not fit the
-    sample (:class:`SensitivityLimits`)."""
+    sample (:class:`SensitivityLimits`; ``upstream_unknown``: :func:`misfit_warning`'s)."""
     visibility = speckle_visibility(reference)
     grain = speckle_grain_px(reference)
     sample = None if background is None else ~background
@@ -384,7 +385,7 @@ def assess(
     if residual is not None and intensity is not None and background is not None:
         misfit = sample_misfit(residual, intensity, background, excluded)
     if misfit > limits.max_sample_misfit:
-        warnings.append(misfit_warning(misfit, limits))
+        warnings.append(misfit_warning(misfit, limits, upstream_unknown))
     return Sensitivity(visibility, grain, shift, ratio, "; ".join(warnings) or None, misfit, s)
 
 
@@ -397,11 +398,24 @@ def insensitive_words(sensitivity: float, limits: SensitivityLimits = Sensitivit
     )
 
 
-def misfit_warning(misfit: float, limits: SensitivityLimits = SensitivityLimits()) -> str:
-    """The words for a fit that leaves ``misfit`` times the background's misfit in the sample."""
+#: what a misfit warning adds where L1 = 0 and no upstream distance was given: a diffuser
+#: upstream of the sample, taken as at it, misfits so too (session 107: a 17 keV scan with the
+#: diffuser 50 mm upstream read 1.40 on every projection without its distance, none over 1.3
+#: with it)
+UPSTREAM_MISFIT_HINT = (
+    "; with L1 = 0 and no upstream distance given, a diffuser upstream of the sample misfits so too: "
+    "give its distance (--diffuser-upstream-m) where it is known"
+)
+
+
+def misfit_warning(
+    misfit: float, limits: SensitivityLimits = SensitivityLimits(), upstream_unknown: bool = False
+) -> str:
+    """The words for a fit that leaves ``misfit`` times the background's misfit in the sample;
+    ``upstream_unknown`` (L1 = 0, no upstream distance) adds :data:`UPSTREAM_MISFIT_HINT`."""
     return (
         f"the fit leaves {misfit:.2f} times the background's misfit inside the sample (above "
         f"{limits.max_sample_misfit:g}): the model does not reach the sample's data (a steep or "
         "strongly absorbing sample, a local minimum), and the phase returned is unreliable "
-        "(docs/validation.md, 'What the data carry')"
+        "(docs/validation.md, 'What the data carry')" + (UPSTREAM_MISFIT_HINT if upstream_unknown else "")
     )

@@ -59,6 +59,7 @@ def simulate_scan(
     beads: bool = True,
     detector_blur_fwhm_m: float = 0.0,
     detector_halo: tuple[float, float] = (0.0, 0.0),
+    optics: dict | None = None,
     progress: bool = True,
 ) -> str:
     """Simulate a whole scan into a Zarr store (docs/scan-format.md §1) and return its path.
@@ -82,8 +83,11 @@ def simulate_scan(
     ``diffuser_grain_shape`` (:mod:`pwf_dask.physics.diffusers`). ``beads=False`` leaves the
     glass beads out: the cellulose cylinder alone, a sample of one material.
     ``detector_blur_fwhm_m`` and ``detector_halo`` = (fraction, 1/e radius in m): the detector's
-    point-spread function, a Gaussian core and an exponential halo (:class:`SpeckleSetup`). The
-    phantom, the diffuser and the truth are recorded in the attributes.
+    point-spread function, a Gaussian core and an exponential halo (:class:`SpeckleSetup`).
+    ``optics`` replaces the paper's beamline (10 keV, 0.65 um pixels, L1 3 mm, L2 20 mm, coherence
+    lengths 3.47 / 4.31 um) field by field: any of :data:`OPTICS_FIELDS`, in SI units. The
+    phantom is drawn in metres from the frame's size, so a coarser pixel holds a larger sample.
+    The phantom, the diffuser and the truth are recorded in the attributes.
     """
     from pwf_dask.stores import scan_io
 
@@ -97,6 +101,7 @@ def simulate_scan(
     photons = float(cfg["photons"] if photons is None else photons)
     _check_scene(shape, n_ang, n_pos, photons, diffuser_drift_px, cylinder_width_fraction, dark_field_px, zingers)
     _check_diffuser_and_axis(shape, rotation_axis_offset_px, diffuser_radius_median_m)
+    optics = _checked_optics(optics, diffuser_upstream_m)
     setup = SpeckleSetup(
         shape=shape,
         photons=photons,
@@ -106,6 +111,7 @@ def simulate_scan(
         detector_blur_fwhm_m=float(detector_blur_fwhm_m),
         detector_halo_fraction=float(detector_halo[0]),
         detector_halo_radius_m=float(detector_halo[1]),
+        **optics,
     )
     if diffuser_upstream_m:
         setup = replace(setup, sample_diffuser_distance_m=0.0, diffuser_upstream_m=diffuser_upstream_m)
@@ -141,6 +147,37 @@ def simulate_scan(
     _simulate_frames(g, setup, phantom, angles_deg, n_pos, seed, drift, dark_field_px, detector, progress)
     scan_io.consolidate(path)
     return str(path)
+
+
+#: the beamline's fields of :class:`SpeckleSetup` that ``simulate_scan(optics=...)`` may replace
+OPTICS_FIELDS = (
+    "energy_eV",
+    "pixel_size_m",
+    "sample_diffuser_distance_m",
+    "diffuser_detector_distance_m",
+    "coherence_length_x_m",
+    "coherence_length_y_m",
+)
+
+
+def _checked_optics(optics: dict | None, diffuser_upstream_m: float) -> dict:
+    """``optics`` as floats, or one line naming the field that is unknown or out of range."""
+    optics = {k: float(v) for k, v in (optics or {}).items()}
+    unknown = sorted(set(optics) - set(OPTICS_FIELDS))
+    if unknown:
+        raise ValueError(
+            f"simulate: unknown optics field(s) {', '.join(unknown)}; choose from {', '.join(OPTICS_FIELDS)}"
+        )
+    for name, value in optics.items():
+        zero_allowed = name == "sample_diffuser_distance_m"
+        if not (np.isfinite(value) and (value >= 0 if zero_allowed else value > 0)):
+            raise ValueError(f"simulate: {name} must be finite and {'>= 0' if zero_allowed else '> 0'}, got {value}")
+    if diffuser_upstream_m and optics.get("sample_diffuser_distance_m", 0.0) != 0.0:
+        raise ValueError(
+            "simulate: a diffuser upstream of the sample means L1 = 0; got sample_diffuser_distance_m "
+            f"{optics['sample_diffuser_distance_m']} with diffuser_upstream_m {diffuser_upstream_m}"
+        )
+    return optics
 
 
 def _check_diffuser_and_axis(shape, rotation_axis_offset_px: float, diffuser_radius_median_m) -> None:
