@@ -4,10 +4,12 @@
 times one PWF iteration (the solver's own loop, as ``pwf-dask bench iteration`` times it: the
 difference of a short and a long run) of the paper's optics on the grid the pipeline builds for a
 frame (padded 17 px a side, :func:`pwf_dask.pwf.model.fast_len`), with each library, interleaved
-in one run, on one and on two FFT threads. Transforms alone mislead here: on the AMD EPYC of
-session 107 MKL was 1.1-1.6x slower than pocketfft on two threads at scipy's old lengths (a 2-D
-real transform of 2200 x 2625: 19.4 ms against 12.4), and the iteration there 0.88x; on the
-lengths the pipeline uses it was faster.
+in one run, on one and on two FFT threads, and how far the two runs' psi end apart. Transforms
+alone mislead here: on the AMD EPYC of session 107 MKL was 1.1-1.6x slower than pocketfft on
+two threads at scipy's old lengths (a 2-D real transform of 2200 x 2625: 19.4 ms against 12.4),
+and the iteration there 0.88x; on the lengths the pipeline uses it was faster. But its
+two-thread transforms of 2048 x 2048 came out wrong there (docs/benchmarks.md), so threaded
+FFTs off Intel stay pocketfft's.
 
     python -m benchmarks.fft_library [--out benchmarks/results] [--quick]
 
@@ -37,7 +39,7 @@ def row(frame, field_upsample: float, workers: int) -> dict:
     grid = estimate.padded_grid(frame)
     big = grid[0] * grid[1] * field_upsample**2 > 2e6
     short, long = (1, 3) if big else (2, 6)
-    runs, field_shape = [], None
+    runs, psi, field_shape = [], [], None
     for library in ("scipy", "mkl"):
         model, y = estimate.timing_problem(grid, FFT.for_module(np, workers, library), field_upsample=field_upsample)
         field_shape = model.field_shape or grid
@@ -45,8 +47,10 @@ def row(frame, field_upsample: float, workers: int) -> dict:
             runs.append(
                 lambda n=n, model=model, y=y: solver.pwf(y, model, max_iter=n, tol=0, step=1e-3, step_search=False)
             )
+        psi.append(runs[-1]().psi)  # the same iterations from the same start with either library
     t = interleaved_min(runs, lambda: None, rounds=2 if big else 3, min_time=0.1)
     scipy_s, mkl_s = (t[1] - t[0]) / (long - short), (t[3] - t[2]) / (long - short)
+    disagreement = float(np.max(np.abs(psi[1] - psi[0])) / np.max(np.abs(psi[0])))
     return {
         "frame": "x".join(map(str, frame)),
         "field_upsample": field_upsample,
@@ -56,7 +60,8 @@ def row(frame, field_upsample: float, workers: int) -> dict:
         "scipy_iteration_ms": scipy_s * 1e3,
         "mkl_iteration_ms": mkl_s * 1e3,
         "mkl_speedup": scipy_s / mkl_s,
-        "auto": backend.resolve_fft_library("auto"),
+        "psi_disagreement": disagreement,
+        "auto": backend.resolve_fft_library("auto", workers),
     }
 
 
@@ -69,15 +74,18 @@ def write_report(out_dir, rows: list[dict], argv=None) -> None:
         "",
         f"`{command_line('benchmarks.fft_library', argv)}`: one iteration (the paper's optics, L1 > 0, single",
         "precision) on the pipeline's grid of each frame, each library timed interleaved in one run;",
-        "*speed-up* is pocketfft's time over MKL's (above 1: MKL faster). *auto* is what",
-        "`PWF_DASK_FFT=auto` takes for that thread budget.",
+        "*speed-up* is pocketfft's time over MKL's (above 1: MKL faster); *psi apart* the largest",
+        "difference of the two runs' psi after the long run's iterations, over psi's largest value",
+        "(float32 rounding grown over the iterations: ~1e-5; MKL's wrong transforms, where they happen, are left",
+        "to pocketfft by `backend._mkl_agrees`). *auto* is what `PWF_DASK_FFT=auto` takes for that thread budget.",
         "",
-        "| frame | field grid | FFT threads | pocketfft (ms) | MKL (ms) | speed-up | auto |",
-        "|---|---|---:|---:|---:|---:|---|",
+        "| frame | field grid | FFT threads | pocketfft (ms) | MKL (ms) | speed-up | psi apart | auto |",
+        "|---|---|---:|---:|---:|---:|---:|---|",
     ]
     lines += [
         f"| {r['frame']} | {r['field_grid']} ({r['field_upsample']:g}x) | {r['fft_workers']} "
-        f"| {r['scipy_iteration_ms']:.1f} | {r['mkl_iteration_ms']:.1f} | {r['mkl_speedup']:.2f} | {r['auto']} |"
+        f"| {r['scipy_iteration_ms']:.1f} | {r['mkl_iteration_ms']:.1f} | {r['mkl_speedup']:.2f} "
+        f"| {r['psi_disagreement']:.1e} | {r['auto']} |"
         for r in rows
     ]
     lines += ["", f"Speed-up over all rows: {speedups[0]:.2f} to {speedups[-1]:.2f}, median {np.median(speedups):.2f}."]

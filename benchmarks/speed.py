@@ -162,7 +162,7 @@ def run_iteration_benchmark(out_dir: str | Path, device: str = "cpu", sizes=None
             )
     tag = "gpu" if xp is not np else "cpu"
     out = write_rows_csv(out_dir, f"bench_iteration_{tag}.csv", rows)
-    # each library named with its thread budgets (PWF_DASK_FFT may force one)
+    # the library can depend on the thread budget (resolve_fft_library): each one named
     libraries = ", ".join(sorted({f"{r['fft_library']} on {r['fft_workers']} thread(s)" for r in rows}))
     lines = [
         f"# PWF iteration time / complex64 FFT time ({rows[0]['device']}, FFTs: {libraries})",

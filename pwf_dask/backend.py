@@ -172,8 +172,8 @@ def _raise_mmap_threshold() -> bool:
 _THREADED_FFT_MIN_POINTS = 1 << 16
 
 
-#: CPU FFT libraries of :class:`FFT`: ``auto`` takes Intel MKL's (``mkl_fft``) where it imports,
-#: else scipy's pocketfft
+#: CPU FFT libraries of :class:`FFT`: ``auto`` takes Intel MKL's (``mkl_fft``) where it imports
+#: on an Intel CPU, and on other CPUs for one thread; else scipy's pocketfft
 CPU_FFT_LIBRARIES = ("auto", "mkl", "scipy")
 
 
@@ -210,27 +210,31 @@ def cpu_vendor() -> str:
     return "GenuineIntel" if "intel" in platform.processor().lower() else ""
 
 
-def resolve_fft_library(library: str | None = None) -> str:
-    """The CPU FFT library :class:`FFT` uses: ``"mkl"`` or ``"scipy"``, whatever the thread budget
-    (until session 107 it depended on it off Intel).
+def resolve_fft_library(library: str | None = None, workers: int | None = None) -> str:
+    """The CPU FFT library :class:`FFT` uses for ``workers`` threads (default
+    :func:`default_fft_workers`): ``"mkl"`` or ``"scipy"``.
 
     ``None`` reads ``PWF_DASK_FFT``. ``"auto"`` takes MKL (``mkl_fft.interfaces.scipy_fft``:
-    scipy's signatures, ``workers`` honoured per call and per thread) where it imports, on any
-    CPU and thread budget; pocketfft elsewhere. Measured with complex64 (docs/benchmarks.md): on an
+    scipy's signatures, ``workers`` honoured per call and per thread) where it imports, on an
+    Intel CPU, and on other CPUs for single-threaded transforms (a scan task's, where tasks
+    share the cores); pocketfft elsewhere. Measured with complex64 (docs/benchmarks.md): on an
     Intel Xeon with AVX-512 MKL was 2.5-2.9x faster than pocketfft at 1024^2 and 2048^2 on one
-    thread, 2.0-2.5x on two (real transforms 1.5-2.2x), a PWF iteration 1.4-1.7x. On AMD EPYCs
-    with AVX2 a PWF iteration on the pipeline's grids ran 1.06-1.43x faster on one thread and
-    1.02-1.44x on two (session 107, ``benchmarks/fft_library.py``, 512^2 to 2160 x 2560 with the
-    field on 1x and 1.5x grids; session 50: 1.10-1.35x). Sessions 38-106 kept pocketfft for
-    threaded FFTs off Intel, on session 38's reading of MKL's transforms alone as slower on two
-    threads (before ``KMP_BLOCKTIME=0`` and the pipeline's FFT lengths); MKL is slower on
-    lengths with the factor 11 (2200 x 2625, two threads: an iteration 0.88x), which
-    :func:`pwf_dask.pwf.model.fast_len` no longer makes.
+    thread, 2.0-2.5x on two (real transforms 1.5-2.2x), a PWF iteration 1.4-1.7x. On two AMD
+    EPYCs with AVX2 it was faster on one thread (session 38: 1.08-1.5x a transform; session 50:
+    a PWF iteration 1.13x at 1024^2 and 1.35x at 2048^2) and on two threads slower on one
+    machine (session 38), 1.10-1.27x faster on the other (session 50). Session 107's EPYC ran
+    an iteration 0.82-1.44x as fast with MKL on two threads, median 1.15x
+    (``benchmarks/fft_library.py``), but there MKL's two-thread 2-D transforms of 2048 x 2048
+    came out wrong (relative error 1):
+    the fft2 of a float32 image every time, and an ifft2 of complex64 depending on the calls
+    before it, which a check once per layout (:func:`_mkl_agrees`) cannot catch. One thread
+    agreed on every call tried, so threaded FFTs off Intel stay pocketfft's.
     """
     library = default_fft_library() if library is None else str(library).strip().lower()
     if library not in CPU_FFT_LIBRARIES:
         raise ValueError(f"FFT library must be one of {', '.join(CPU_FFT_LIBRARIES)}, not {library!r}")
-    if library == "scipy":
+    workers = default_fft_workers() if workers is None else max(1, int(workers))
+    if library == "scipy" or (library == "auto" and cpu_vendor() != "GenuineIntel" and workers > 1):
         return "scipy"
     if _mkl_scipy_fft() is None:
         if library == "mkl":
@@ -311,11 +315,11 @@ class FFT:
     @classmethod
     def for_module(cls, xp: ModuleType, workers: int | None = None, library: str | None = None) -> FFT:
         """``workers`` FFT threads (default :func:`default_fft_workers`); ``library`` on the CPU
-        (default ``PWF_DASK_FFT``, else MKL where it imports: :func:`resolve_fft_library`)."""
+        (default ``PWF_DASK_FFT``, else MKL where it imports and pays: :func:`resolve_fft_library`)."""
         if xp is np:
             recycle_large_arrays()
         workers = default_fft_workers() if workers is None else max(1, int(workers))
-        return cls(xp, workers, resolve_fft_library(library) if xp is np else xp.__name__)
+        return cls(xp, workers, resolve_fft_library(library, workers) if xp is np else xp.__name__)
 
     def _threads(self, points: int) -> int:
         # pocketfft's threads cost more than they save on small grids: measured here with 2

@@ -767,9 +767,10 @@ def test_fft_library_report_says_what_auto_takes_beside_each_rows_speed_up(tmp_p
     rows = [
         {"frame": "512x512", "field_upsample": f, "grid": "560x560", "field_grid": g, "fft_workers": w}
         | {"scipy_iteration_ms": 20.0, "mkl_iteration_ms": 20.0 / s, "mkl_speedup": s, "auto": "mkl"}
+        | {"psi_disagreement": 3e-7}
         for f, g, w, s in ((1.0, "560x560", 1, 1.25), (1.5, "840x840", 2, 0.96))
     ]
     fft_library.write_report(tmp_path, rows, argv=[])
     text = (tmp_path / "fft_library.md").read_text()
-    assert "| 512x512 | 840x840 (1.5x) | 2 | 20.0 | 20.8 | 0.96 | mkl |" in text
+    assert "| 512x512 | 840x840 (1.5x) | 2 | 20.0 | 20.8 | 0.96 | 3.0e-07 | mkl |" in text
     assert "Speed-up over all rows: 0.96 to 1.25, median 1.10." in text
