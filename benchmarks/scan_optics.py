@@ -15,7 +15,7 @@ the scan's, the FSC between the angle halves, iterations, and any warning `run` 
 
     python -m benchmarks.scan_optics [--out benchmarks/results] [--only NAME ...]
 
-Writes ``scan_optics.md`` and ``.csv`` (about 17 min on 2 cores).
+Writes ``scan_optics.md`` and ``.csv`` (about 28 min on 2 cores).
 """
 
 from __future__ import annotations
@@ -117,6 +117,27 @@ SCENES: list[tuple[str, str, list[str]]] = [
         ],
     ),  # fmt: skip
     (
+        "paper-source",
+        "the paper's optics, its coherence from an extended source (`--coherence-model source`: the sample "
+        "moves against the speckle by 0.23 px rms)",
+        ["--coherence-model", "source", "--axis-offset-px", "3.3"],
+    ),
+    (
+        "paper-upstream-source",
+        "the paper's optics with its P3000 50 mm upstream, coherence from an extended source (the sample moves "
+        "against the speckle by 1.08 px rms)",
+        [
+            "--sample-diffuser-distance-m",
+            "0",
+            "--diffuser-upstream-m",
+            "0.05",
+            "--coherence-model",
+            "source",
+            "--axis-offset-px",
+            "-4.1",
+        ],
+    ),
+    (
         "8keV-absorbing",
         "8 keV (glass beta / delta 0.016: the Re(alpha) rule binds), the paper's distances and lengths, P3000",
         ["--energy-eV", "8000", "--axis-offset-px", "1.7"],
@@ -124,7 +145,7 @@ SCENES: list[tuple[str, str, list[str]]] = [
 ]
 ANGLES = 41
 #: scenes whose diffuser sits upstream, run again with ``--diffuser-upstream-m`` as simulated
-GIVEN_UPSTREAM = ("paper-upstream", "17keV-upstream", "25keV-coarse")
+GIVEN_UPSTREAM = ("paper-upstream", "paper-upstream-source", "17keV-upstream", "25keV-coarse")
 
 
 def _pwf_dask(*args: str) -> tuple[str, float]:

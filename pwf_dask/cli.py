@@ -87,6 +87,7 @@ def _simulate(args) -> int:
         detector_blur_fwhm_m=args.detector_blur_um * 1e-6,
         detector_halo=(args.detector_halo[0], args.detector_halo[1] * 1e-6),
         optics={k: getattr(args, k) for k in OPTICS_FIELDS if getattr(args, k) is not None},
+        coherence_model=args.coherence_model,
     )
     print(f"wrote scan {path}")
     return 0
@@ -536,6 +537,7 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 def _simulate_command(command) -> None:
     from pwf_dask.physics.diffusers import DEFAULT_GRIT, FEPA_P_GRIT_DIAMETER_M, GRAIN_SHAPES
     from pwf_dask.simulation import DEFAULT_PRESET, PRESETS
+    from pwf_dask.simulation.speckle import COHERENCE_MODELS
 
     s = command("simulate", "simulate a scan of a 3-D phantom into a Zarr store")
     s.add_argument("out", help="the new scan store (a path that does not exist yet)")
@@ -647,6 +649,14 @@ def _simulate_command(command) -> None:
         ("--coherence-length-y-m", "coherence_length_y_m", "along y (paper: 4.31e-6); the scan records neither"),
     ):
         beamline.add_argument(flag, dest=dest, type=float, help=what)
+    beamline.add_argument(
+        "--coherence-model",
+        default="detector",
+        choices=list(COHERENCE_MODELS),
+        help="how partial coherence enters: detector (default), the paper's IPSF blur of the detector "
+        "intensity, which PWF's model is; source, an extended source whose tilted waves also move the sample "
+        "against the speckle (the lengths are then the reference's)",
+    )
     s.set_defaults(func=_simulate)
 
 

@@ -786,7 +786,7 @@ def retrieve_projection(
         ),
         background=mask,
     )
-    upstream_unknown = sample_diffuser_distance_m == 0 and not opts.diffuser_upstream_m
+    hint = sensitivity.misfit_hint(sample_diffuser_distance_m, opts.diffuser_upstream_m)
     return _with_sensitivity(
         res,
         ref,
@@ -795,7 +795,7 @@ def retrieve_projection(
         diffuser_detector_distance_m,
         intensity=y / scale,
         excluded=excluded,
-        upstream_unknown=upstream_unknown,
+        misfit_hint=hint,
     )
 
 
@@ -836,7 +836,7 @@ def _with_sensitivity(
     diffuser_detector_distance_m,
     intensity=None,
     excluded=None,
-    upstream_unknown: bool = False,
+    misfit_hint: str = "",
 ):
     """``res`` with what the speckle could carry in its parameters
     (:func:`pwf_dask.calibration.sensitivity.assess`: the speckle's visibility and grain, the
@@ -855,7 +855,7 @@ def _with_sensitivity(
         residual=None if intensity is None else res.residual,
         intensity=intensity,
         excluded=excluded,
-        upstream_unknown=upstream_unknown,
+        misfit_hint=misfit_hint,
     )
     res.parameters.update(found.parameters())
     return res

@@ -505,6 +505,29 @@ def test_upstream_distance_report_puts_each_selector_where_its_quantity_is_least
     assert "| P3000 | 50 | 1 | zero-phase |  |  | 1.000 |" in text
 
 
+def test_source_coherence_report_means_each_scene_and_model_over_the_seeds(tmp_path):
+    """benchmarks/source_coherence.py's summary: per scene and coherence model, the means over
+    the seeds, and how many runs were warned."""
+    from benchmarks.source_coherence import write_markdown
+
+    def row(model, seed, error, misfit, warned):
+        return dict(
+            scene="50 mm upstream, given", model=model, method="pwf", seed=seed,
+            shift_sigma_px=1.08 if model == "source" else 0.0,
+            length_x_err=-0.02, length_y_err=0.01, phase_gain=0.9, phase_error=error, attenuation_error=0.2,
+            residual_pct=2.0, sample_misfit=misfit, warned=warned, diffuser_model="single-material",
+            iterations=100, converged=True, simulate_s=1.0, seconds=2.0,
+        )  # fmt: skip
+
+    rows = [row("detector", 1, 0.10, 1.0, False), row("source", 1, 0.14, 1.6, True)]
+    rows += [row("detector", 2, 0.12, 1.1, False), row("source", 2, 0.16, 1.2, False)]
+    write_markdown(rows, str(tmp_path / "s.md"), "python -m benchmarks.source_coherence")
+    text = (tmp_path / "s.md").read_text()
+    head = "| 50 mm upstream, given | PWF |"
+    assert f"{head} detector | 0.00 | -2.0% / +1.0% | 0.900 | 0.110 | 0.200 | 2.000 | 1.05 | 0/2 |" in text
+    assert f"{head} source | 1.08 | -2.0% / +1.0% | 0.900 | 0.150 | 0.200 | 2.000 | 1.40 | 1/2 |" in text
+
+
 def test_field_grid_random_report_splits_the_pairs_by_what_the_alpha_rule_did():
     """benchmarks/field_grid.py's random scenes: only the scenes that ran on both grids are
     paired, each group of the alpha rule's outcome counts its holding scenes and the detector

@@ -16,7 +16,7 @@ from pwf_dask.calibration import (
     speckle_shift_px,
     speckle_visibility,
 )
-from pwf_dask.calibration.sensitivity import misfit_warning
+from pwf_dask.calibration.sensitivity import misfit_hint, misfit_warning
 from pwf_dask.pipeline.workflow import sensitivity_warning
 from pwf_dask.simulation import SpeckleSetup, simulate_projection
 
@@ -180,11 +180,15 @@ def test_a_scans_summary_counts_the_projections_below_each_limit():
     assert line.startswith("the fit leaves over 1.3 times the background's misfit inside the sample on 2 of 5")
     assert "(the largest 2.50)" in line and "--diffuser-upstream-m" not in line
     # L1 = 0 and no upstream distance: the misfit's words name the likely cause and its option
-    hinted = sensitivity_warning(np.full((2, 3), 0.1), np.full((2, 3), 0.2), misfit, upstream_unknown=True)
+    unknown = misfit_hint(0.0, 0.0)
+    hinted = sensitivity_warning(np.full((2, 3), 0.1), np.full((2, 3), 0.2), misfit, misfit_hint=unknown)
     assert hinted.endswith("give its distance (--diffuser-upstream-m) where it is known")
-    assert sensitivity_warning(np.full((2, 3), 0.1), np.full((2, 3), 0.2), upstream_unknown=True) is None
-    assert misfit_warning(1.5, upstream_unknown=True).endswith("where it is known")  # a projection's words
+    assert sensitivity_warning(np.full((2, 3), 0.1), np.full((2, 3), 0.2), misfit_hint=unknown) is None
+    assert misfit_warning(1.5, hint=unknown).endswith("where it is known")  # a projection's words
     assert "upstream" not in misfit_warning(1.5)
+    # the distance given: an extended source misfits there while delta holds; downstream: no hint
+    assert misfit_warning(1.5, hint=misfit_hint(0.0, 0.05)).endswith("(docs/validation.md, 'An extended source')")
+    assert misfit_hint(3e-3, 0.0) == ""
     # K = 2 positions: an angle counts once, by its largest; NaN (not retrieved) not at all
     apart = np.array([[0.1, 0.5, np.nan], [0.1, 0.5, np.nan]])
     line = sensitivity_warning(np.full((2, 3), 0.1), np.full((2, 3), 0.2), None, apart)

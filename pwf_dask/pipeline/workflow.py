@@ -999,13 +999,13 @@ def sensitivity_warning(
     misfit: np.ndarray | None = None,
     disagreement: np.ndarray | None = None,
     phase_sensitivity: float | None = None,
-    upstream_unknown: bool = False,
+    misfit_hint: str = "",
 ) -> str | None:
     """One line where some projections lie beyond :class:`pwf_dask.calibration.SensitivityLimits`
     (the data carry little of their phase, the model does not fit the sample, or the diffuser
     positions disagree), or the scan's ``phase_sensitivity`` (:func:`scan_phase_sensitivity`)
     lies below its limit, else None; NaN or None (not measured) counts as neither.
-    ``upstream_unknown`` (L1 = 0, no upstream distance) adds its hint to a misfit's words."""
+    ``misfit_hint`` (:func:`~pwf_dask.calibration.sensitivity.misfit_hint`) follows a misfit's words."""
     from pwf_dask.calibration import SensitivityLimits
     from pwf_dask.calibration.sensitivity import insensitive_words
 
@@ -1035,7 +1035,7 @@ def sensitivity_warning(
             "unreliable, mostly too low (docs/validation.md, 'What the data carry')"
         )
     if misfit is not None:
-        lines.append(_unfit_line(np.asarray(misfit), limits.max_sample_misfit, upstream_unknown))
+        lines.append(_unfit_line(np.asarray(misfit), limits.max_sample_misfit, misfit_hint))
     if disagreement is not None:
         lines.append(_disagreement_line(np.asarray(disagreement), limits.max_position_disagreement))
     return "; ".join(line for line in lines if line) or None
@@ -1057,12 +1057,10 @@ def _disagreement_line(disagreement: np.ndarray, limit: float) -> str | None:
     )
 
 
-def _unfit_line(misfit: np.ndarray, limit: float, upstream_unknown: bool = False) -> str | None:
+def _unfit_line(misfit: np.ndarray, limit: float, hint: str = "") -> str | None:
     """The summary's words for the projections whose fit leaves over ``limit`` times the
     background's misfit in the sample (:func:`pwf_dask.calibration.sensitivity.sample_misfit`),
-    with :data:`~pwf_dask.calibration.sensitivity.UPSTREAM_MISFIT_HINT` where ``upstream_unknown``."""
-    from pwf_dask.calibration.sensitivity import UPSTREAM_MISFIT_HINT
-
+    and ``hint`` after them (:func:`~pwf_dask.calibration.sensitivity.misfit_hint`)."""
     measured = np.isfinite(misfit)
     unfit = measured & (misfit > limit)
     if not unfit.any():
@@ -1071,26 +1069,28 @@ def _unfit_line(misfit: np.ndarray, limit: float, upstream_unknown: bool = False
         f"the fit leaves over {limit:g} times the background's misfit inside the sample on "
         f"{int(unfit.sum())} of {int(measured.sum())} projections (the largest {float(misfit[unfit].max()):.2f}): "
         "the model does not reach the sample's data there, and the phase returned is unreliable "
-        "(docs/validation.md, 'What the data carry')" + (UPSTREAM_MISFIT_HINT if upstream_unknown else "")
+        "(docs/validation.md, 'What the data carry')" + hint
     )
 
 
 def _warn_sensitivity(grp) -> None:
     """Log :func:`sensitivity_warning` of the store's projections (all of them, resumed runs too)."""
+    from pwf_dask.calibration.sensitivity import misfit_hint
+
     if "speckle_shift_over_grain" not in grp:
         return
     misfit = grp["sample_misfit"][...] if "sample_misfit" in grp else None  # stores made before session 84 lack it
     apart = grp[POSITION_DISAGREEMENT][...] if POSITION_DISAGREEMENT in grp else None  # K >= 2 only
     s = grp.attrs.get("phase_sensitivity")  # "n/a" for the trackers and in stores made before session 92
     a = grp.attrs
-    upstream_unknown = a.get("sample_diffuser_distance_m") == 0 and not a.get("diffuser_upstream_m")
+    hint = misfit_hint(a.get("sample_diffuser_distance_m"), a.get("diffuser_upstream_m", 0.0))
     line = sensitivity_warning(
         grp["speckle_shift_over_grain"][...],
         grp["speckle_visibility"][...],
         misfit,
         apart,
         s if isinstance(s, (int, float)) else None,
-        upstream_unknown=upstream_unknown,
+        misfit_hint=hint,
     )
     if line:
         log.warning(f"retrieve: warning: {line}")

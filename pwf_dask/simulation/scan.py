@@ -60,6 +60,7 @@ def simulate_scan(
     detector_blur_fwhm_m: float = 0.0,
     detector_halo: tuple[float, float] = (0.0, 0.0),
     optics: dict | None = None,
+    coherence_model: str = "detector",
     progress: bool = True,
 ) -> str:
     """Simulate a whole scan into a Zarr store (docs/scan-format.md §1) and return its path.
@@ -87,6 +88,8 @@ def simulate_scan(
     ``optics`` replaces the paper's beamline (10 keV, 0.65 um pixels, L1 3 mm, L2 20 mm, coherence
     lengths 3.47 / 4.31 um) field by field: any of :data:`OPTICS_FIELDS`, in SI units. The
     phantom is drawn in metres from the frame's size, so a coarser pixel holds a larger sample.
+    ``coherence_model="source"``: partial coherence from an extended source, which also moves the
+    sample against the speckle (:attr:`SpeckleSetup.coherence_model`; default: the paper's IPSF).
     The phantom, the diffuser and the truth are recorded in the attributes.
     """
     from pwf_dask.stores import scan_io
@@ -111,6 +114,7 @@ def simulate_scan(
         detector_blur_fwhm_m=float(detector_blur_fwhm_m),
         detector_halo_fraction=float(detector_halo[0]),
         detector_halo_radius_m=float(detector_halo[1]),
+        coherence_model=coherence_model,
         **optics,
     )
     if diffuser_upstream_m:
@@ -218,6 +222,7 @@ def _simulation_attrs(setup: SpeckleSetup, preset, seed, zingers, dark_field_px,
         "simulation_seed": seed,
         "simulation_coherence_length_x_m": setup.coherence_length_x_m,
         "simulation_coherence_length_y_m": setup.coherence_length_y_m,
+        "simulation_coherence_model": setup.coherence_model,
         "simulation_rotation_axis_offset_m": setup.rotation_axis_offset_m,
         "simulation_diffuser_upstream_m": setup.diffuser_upstream_m,
         "simulation_zingers": zingers,

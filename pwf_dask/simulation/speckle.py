@@ -11,7 +11,9 @@ by ``margin_px`` detector pixels each side (so periodic wrap-around never reache
    grain shapes as options), a thin-object transmission;
    (or, with ``diffuser_upstream_m``, the diffuser before the sample: diffuser, free space,
    sample, the geometry the algorithms see as L1 = 0);
-4. propagation over L2, intensity, partial-coherence blur by the IPSF, Eq. (IPSF);
+4. propagation over L2, intensity, partial-coherence blur by the IPSF, Eq. (IPSF), or
+   (``coherence_model="source"``) an extended Gaussian source's incoherent sum over its
+   points, which also moves the sample against the speckle (:mod:`pwf_dask.physics.source`);
 5. optionally the detector's own blur (``detector_blur_fwhm_m``, ``detector_halo_fraction``:
    :func:`pwf_dask.physics.optics.detector_transfer_function`), which the paper's model lacks;
 6. detector pixel integration (block mean), Poisson noise at ``photons`` per pixel.
@@ -28,7 +30,7 @@ import numpy as np
 
 from pwf_dask.backend import FFT
 from pwf_dask.calibration import shift_transmission
-from pwf_dask.physics import diffusers, optics
+from pwf_dask.physics import diffusers, optics, source
 from pwf_dask.physics.geometry import GEOMETRY_KEYS
 from pwf_dask.physics.materials import delta_beta
 from pwf_dask.simulation.phantoms import Phantom, default_phantom
@@ -69,6 +71,10 @@ class SimulatedProjection:
 FINE_DIFFUSER = {"diffuser_radius_median_m": 1.2e-6, "diffuser_radius_spread": 0.6}
 
 
+#: :attr:`SpeckleSetup.coherence_model`'s choices
+COHERENCE_MODELS = ("detector", "source")
+
+
 @dataclass
 class SpeckleSetup:
     """Geometry and source of a simulated speckle measurement (defaults: the paper's set-up)."""
@@ -104,6 +110,13 @@ class SpeckleSetup:
     detector_blur_fwhm_m: float = 0.0
     detector_halo_fraction: float = 0.0
     detector_halo_radius_m: float = 0.0
+    #: how partial coherence enters: ``"detector"``, the paper's IPSF on the detector intensity
+    #: (Eq. (IPSF), the model PWF fits), or ``"source"``, an extended Gaussian source whose
+    #: tilted waves also move the sample against the speckle (:mod:`pwf_dask.physics.source`;
+    #: the coherence lengths are then the reference's, at the diffuser's distance)
+    coherence_model: str = "detector"
+    #: bins per axis of the source's angles (``"source"``; None: :func:`~pwf_dask.physics.source.bins_per_axis`)
+    source_bins: int | None = None
 
     def geometry(self) -> dict:
         """The keyword arguments :func:`pwf_dask.retrieve_projection` needs for this set-up."""
@@ -133,6 +146,12 @@ class SpeckleSetup:
                 f"{self.sample_diffuser_distance_m}"
             )
         optics.check_detector_blur(self.detector_blur_fwhm_m, self.detector_halo_fraction, self.detector_halo_radius_m)
+        if self.coherence_model not in COHERENCE_MODELS:
+            raise ValueError(
+                f"unknown coherence_model {self.coherence_model!r}: choose one of {', '.join(COHERENCE_MODELS)}"
+            )
+        if self.source_bins is not None and not (isinstance(self.source_bins, int) and self.source_bins >= 1):
+            raise ValueError(f"source_bins must be a whole number >= 1, got {self.source_bins!r}")
 
     def fine_grid(self):
         s = self.oversample
@@ -268,32 +287,78 @@ class SpeckleSimulator:
         speckle blur sigma in detector pixels (:func:`dark_field_blur`); None: none.
         """
         fft = self.fft
-        if self.kernel_upstream is not None:
-            # diffuser -> free space -> sample -> L2: the sample is lit by developed speckle,
-            # the same for every angle of a position, so it is propagated once per diffuser
-            if self._illumination is None or self._illumination[0] is not diffuser:
-                self._illumination = (diffuser, fft.ifft2(fft.fft2(diffuser) * self.kernel_upstream))
-            a = self._illumination[1]
-            if sample_field is not None:
-                a = a * sample_field
+        carrier, lit = self._carrier_and_sample(sample_field, diffuser)
+        if sample_field is not None and self._sample_shift_sigma_m() != (0.0, 0.0):
+            inten = self._extended_source_intensity(carrier, lit)
         else:
-            if sample_field is None:
-                a = np.ones(self.fine_shape, complex)
-            elif self.kernel1 is None:
-                a = sample_field
-            else:
-                a = fft.ifft2(fft.fft2(sample_field) * self.kernel1)
-            a = a * diffuser
-        v = fft.ifft2(fft.fft2(a) * self.kernel2)
-        inten = np.abs(v) ** 2
-        if self.iotf is not None:
-            inten = fft.irfft2(fft.rfft2(inten) * self.iotf, s=self.fine_shape)
+            v = fft.ifft2(fft.fft2(carrier * lit) * self.kernel2)
+            inten = np.abs(v) ** 2
+            if self.iotf is not None:
+                inten = fft.irfft2(fft.rfft2(inten) * self.iotf, s=self.fine_shape)
         if dark_field_sigma_px is not None:
             inten = dark_field_blur(inten, dark_field_sigma_px * self.setup.oversample)
         if self.detector_transfer is not None:
             # the scintillator sees the X-ray intensity as the sample and source left it
             inten = fft.irfft2(fft.rfft2(inten) * self.detector_transfer, s=self.fine_shape)
         return self._bin(inten)
+
+    def _carrier_and_sample(self, sample_field, diffuser):
+        """(the diffuser's field where the sample is, the sample's field there): their product
+        goes over L2. Upstream, diffuser -> free space -> sample; else sample -> L1 -> diffuser."""
+        fft = self.fft
+        if self.kernel_upstream is not None:
+            # the sample is lit by developed speckle, the same for every angle of a position,
+            # so it is propagated once per diffuser
+            if self._illumination is None or self._illumination[0] is not diffuser:
+                self._illumination = (diffuser, fft.ifft2(fft.fft2(diffuser) * self.kernel_upstream))
+            carrier = self._illumination[1]
+            return carrier, (1.0 if sample_field is None else sample_field)
+        if sample_field is None:
+            return diffuser, 1.0
+        if self.kernel1 is None:
+            return diffuser, sample_field
+        return diffuser, fft.ifft2(fft.fft2(sample_field) * self.kernel1)
+
+    def _source_geometry(self) -> tuple[float, float]:
+        """(z_ref, h) of :mod:`pwf_dask.physics.source`: the diffuser's distance to the
+        detector, and the sample's shift against the speckle per radian of tilt."""
+        st = self.setup
+        if st.diffuser_upstream_m:
+            return st.diffuser_upstream_m + st.diffuser_detector_distance_m, -st.diffuser_upstream_m
+        return st.diffuser_detector_distance_m, st.sample_diffuser_distance_m
+
+    def _sample_shift_sigma_m(self) -> tuple[float, float]:
+        """The rms shift (y, x) of the sample against the speckle over the source's points:
+        zero under the paper's IPSF model, at full coherence, or with both in one plane."""
+        st = self.setup
+        if st.coherence_model != "source":
+            return (0.0, 0.0)
+        z_ref, h = self._source_geometry()
+        return tuple(source.ipsf_sigma_m(c) * h / z_ref for c in (st.coherence_length_y_m, st.coherence_length_x_m))
+
+    def _extended_source_intensity(self, carrier, lit):
+        """The mean over the source's points of S[theta z_ref] |P2{t S[theta h] x}|^2
+        (:mod:`pwf_dask.physics.source`), on the fine grid before the detector."""
+        st, fft = self.setup, self.fft
+        shift_sigma = self._sample_shift_sigma_m()
+        detector_sigma = [source.ipsf_sigma_m(c) for c in (st.coherence_length_y_m, st.coherence_length_x_m)]
+        fy = np.fft.fftfreq(self.fine_shape[0], self.spacing)
+        fx = np.fft.fftfreq(self.fine_shape[1], self.spacing)
+        fx_half = np.fft.rfftfreq(self.fine_shape[1], self.spacing)
+        n = [st.source_bins or source.bins_per_axis(s, st.pixel_size_m) for s in shift_sigma]
+        centres = [source.source_bins(k) for k in n]
+        transfer_y = source.bin_transfer(fy, detector_sigma[0], n[0])
+        transfer_x = source.bin_transfer(fx_half, detector_sigma[1], n[1])
+        spec_lit = fft.fft2(np.broadcast_to(lit, self.fine_shape).astype(complex))
+        total = np.zeros((self.fine_shape[0], len(fx_half)), complex)
+        for i, cy in enumerate(centres[0]):
+            ramp_y = source.shift_ramp(fy, cy * shift_sigma[0])[:, None]
+            for j, cx in enumerate(centres[1]):
+                ramp_x = source.shift_ramp(fx, cx * shift_sigma[1])[None, :]
+                a = fft.ifft2(spec_lit * ramp_y * ramp_x) * carrier
+                v = fft.ifft2(fft.fft2(a) * self.kernel2)
+                total += fft.rfft2(np.abs(v) ** 2) * (transfer_y[i][:, None] * transfer_x[j][None, :])
+        return fft.irfft2(total, s=self.fine_shape)
 
     def dark_field_sigma_px(self, psi: np.ndarray, dark_field_px: float) -> np.ndarray | None:
         """The speckle blur map of a sample (fine grid, detector pixels): ``dark_field_px``
