@@ -12,7 +12,7 @@ same lengths at the diffuser's distance), one projection retrieved by PWF with e
 
     python -m benchmarks.source_coherence [--out benchmarks/results]
 
-Writes ``source_coherence.md`` and ``.csv`` (about 25 minutes on 2 cores).
+Writes ``source_coherence.md`` and ``.csv`` (about 33 minutes on 2 cores).
 """
 
 from __future__ import annotations
@@ -33,6 +33,10 @@ SCENES = {
     "paper (L1 3 mm, L2 20 mm)": ({}, {}),
     "L1 10 mm, L2 100 mm": ({"sample_diffuser_distance_m": 10e-3, "diffuser_detector_distance_m": 0.1}, {}),
     "L1 20 mm, L2 20 mm": ({"sample_diffuser_distance_m": 20e-3}, {}),
+    "5 mm upstream, given": (
+        {"sample_diffuser_distance_m": 0.0, "diffuser_upstream_m": 5e-3},
+        {"diffuser_upstream_m": 5e-3},
+    ),
     "20 mm upstream, given": (
         {"sample_diffuser_distance_m": 0.0, "diffuser_upstream_m": 20e-3},
         {"diffuser_upstream_m": 20e-3},
@@ -40,6 +44,10 @@ SCENES = {
     "50 mm upstream, given": (
         {"sample_diffuser_distance_m": 0.0, "diffuser_upstream_m": 50e-3},
         {"diffuser_upstream_m": 50e-3},
+    ),
+    "100 mm upstream, given": (
+        {"sample_diffuser_distance_m": 0.0, "diffuser_upstream_m": 0.1},
+        {"diffuser_upstream_m": 0.1},
     ),
     "50 mm upstream, not given": ({"sample_diffuser_distance_m": 0.0, "diffuser_upstream_m": 50e-3}, {}),
 }
