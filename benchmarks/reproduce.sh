@@ -117,7 +117,7 @@ case "${1:-all}" in
   fft-lengths) "$(dirname "$PWF")/python" -m benchmarks.fft_lengths --part all --out "$OUT" ;;
   fft-library) "$(dirname "$PWF")/python" -m benchmarks.fft_library --out "$OUT" ;;
   scan-optics) "$(dirname "$PWF")/python" -m benchmarks.scan_optics --out "$OUT" ;;
-  source-coherence) "$(dirname "$PWF")/python" -m benchmarks.source_coherence --out "$OUT" ;;
+  source-coherence) "$(dirname "$PWF")/python" -m benchmarks.source_coherence --out "$OUT" && "$(dirname "$PWF")/python" -m benchmarks.source_coherence --random --out "$OUT" ;;
   paper-figures) "$(dirname "$PWF")/python" -m benchmarks.paper_figures --out "$OUT" ;;
   all)
     for b in accuracy accuracy-beads stability iteration scan bead defects authors drift calibration calibration-sweep geometry frame-size frame-grits frame-defaults frame-bead-grains frame-camera edge-step cylinder-rows cylinder-why cylinder-draws cylinder-draws-why cylinder-draws-edge cylinder-draws-single-material cylinder-draws-1e3 cylinder-draws-96rows coherence-sensitivity coherence-sensitivity-low-dose low-dose-lengths low-dose-reference absorbing-samples bead-absorption detector-psf upstream-distance alpha-sensitivity coarse-start probe-window probe-iterations demo-dose random-scenes random-scenes-held-out sensitivity-check holds-by-dose position-agreement diffuser-models fbp perscan field-grid fft-lengths fft-library scan-optics source-coherence paper-figures fullwidth; do "$0" "$b"; done ;;

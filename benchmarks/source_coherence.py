@@ -19,14 +19,15 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from benchmarks.reporting import command_line, device_name, rows_of
-from benchmarks.stability import errors
+from benchmarks.stability import PHASE_ERROR_THRESHOLD, errors
 from pwf_dask.retrieval import retrieve_projection
 from pwf_dask.simulation import SpeckleSetup, simulate_projection
-from pwf_dask.simulation.speckle import SpeckleSimulator
+from pwf_dask.simulation.speckle import sample_shift_sigma_m
 
 #: scene name -> (SpeckleSetup fields, retrieve_projection options); 256^2, 1e4 ph/px, P3000
 SCENES = {
@@ -62,7 +63,7 @@ SHAPE = (256, 256)
 
 def shift_sigma_px(setup: SpeckleSetup) -> float:
     """The rms shift of the sample against the speckle under the source (x, detector pixels)."""
-    return abs(SpeckleSimulator(setup, seed=0)._sample_shift_sigma_m()[1]) / setup.pixel_size_m
+    return abs(sample_shift_sigma_m(setup)[1]) / setup.pixel_size_m
 
 
 def scene_rows(name: str, model: str, seed: int) -> list[dict]:
@@ -186,13 +187,127 @@ def write_markdown(rows: list[dict], path: str, command: str) -> None:
         f.write("\n".join(lines) + "\n")
 
 
+#: random geometries (``benchmarks.random_scenes``, scenes 0-79) run under both models: the
+#: ones whose sample moves most against the speckle under the source
+RANDOM_SCENES = 80
+RANDOM_LARGEST = 20
+
+
+def random_shift_px(i: int) -> float:
+    """The larger axis's rms shift of random scene ``i``'s sample against its speckle (px)."""
+    from benchmarks.random_scenes import DRAW_SEED, draw_setup
+
+    setup = replace(draw_setup(np.random.default_rng(DRAW_SEED + i)), coherence_model="source")
+    return max(abs(s) for s in sample_shift_sigma_m(setup)) / setup.pixel_size_m
+
+
+def random_rows(i: int) -> list[dict]:
+    """Random scene ``i`` simulated under each coherence model, PWF with every default."""
+    from benchmarks.random_scenes import DRAW_SEED, draw_setup, retrieve_scene
+
+    drawn = draw_setup(np.random.default_rng(DRAW_SEED + i))
+    rows = []
+    for model in MODELS:
+        setup = replace(drawn, coherence_model=model)
+        sim = simulate_projection(setup, seed=i)
+        background = np.abs(sim.phase) < 1e-3 * np.abs(sim.phase).max()
+        t0 = time.perf_counter()
+        try:
+            r = retrieve_scene(setup, sim, background)
+        except ValueError as exc:  # the calibration refuses the reference (random_scenes' "refused")
+            rows.append({"scene": i, "model": model, "refused": str(exc).split(";")[0]})
+            continue
+        e = errors(r.phase, r.attenuation, sim.phase, sim.attenuation, background)
+        rows.append(
+            {
+                "scene": i,
+                "geometry": (
+                    f"{drawn.diffuser_upstream_m * 1e3:.1f} mm upstream"
+                    if drawn.diffuser_upstream_m
+                    else f"L1 {drawn.sample_diffuser_distance_m * 1e3:.1f} mm"
+                )
+                + f", L2 {drawn.diffuser_detector_distance_m * 1e3:.1f} mm",
+                "model": model,
+                "shift_sigma_px": random_shift_px(i),
+                "phase_error": e["phase_error"],
+                "holds": bool(e["phase_error"] < PHASE_ERROR_THRESHOLD),
+                "sample_misfit": r.parameters.get("sample_misfit", float("nan")),
+                "warned": bool(r.parameters.get("sensitivity_warning")),
+                "seconds": time.perf_counter() - t0,
+            }
+        )
+    return rows
+
+
+def write_random_markdown(rows: list[dict], path: str, command: str) -> None:
+    pairs: dict = {}
+    for r in rows:
+        if not r.get("refused"):
+            pairs.setdefault(r["scene"], {})[r["model"]] = r
+    refused = sorted({r["scene"] for r in rows if r.get("refused")})
+    both = [p for p in pairs.values() if len(p) == 2]
+    held = {m: sum(p[m]["holds"] for p in both) for m in MODELS}
+    warned = {m: sum(p[m]["warned"] for p in both) for m in MODELS}
+    lines = [
+        "# Partial coherence from an extended source: random geometries",
+        "",
+        f"`{command}` on {device_name(np)}: of the random geometries 0-{RANDOM_SCENES - 1}",
+        "(`benchmarks.random_scenes`: 8-30 keV, 0.3-3 um pixels, L2 5-200 mm, coherence 1-8 um, 1e2-1e6",
+        f"ph/px, grains, upstream diffusers), the {RANDOM_LARGEST} whose sample moves most against the speckle",
+        "under an extended source, each simulated under both coherence models and retrieved by PWF with",
+        f"every default. Holds: phase error below {PHASE_ERROR_THRESHOLD}.",
+        "",
+        f"Holds: detector {held['detector']} of {len(both)}, source {held['source']}; warned: detector "
+        f"{warned['detector']}, source {warned['source']}."
+        + (
+            f" Refused by the calibration (too few frequencies above the noise): scene {', '.join(map(str, refused))}."
+            if refused
+            else ""
+        ),
+        "",
+        "| scene | geometry | shift (px) | phase error, detector / source | holds | sample misfit | warned |",
+        "|---:|---|---:|---|---|---|---|",
+    ]
+    for i, p in sorted(
+        ((i, p) for i, p in pairs.items() if len(p) == 2), key=lambda kv: -kv[1]["source"]["shift_sigma_px"]
+    ):
+        d, s = p["detector"], p["source"]
+        lines.append(
+            f"| {i} | {d['geometry']} | {s['shift_sigma_px']:.2f} | {d['phase_error']:.3f} / {s['phase_error']:.3f} "
+            f"| {'yes' if d['holds'] else 'no'} / {'yes' if s['holds'] else 'no'} "
+            f"| {d['sample_misfit']:.2f} / {s['sample_misfit']:.2f} "
+            f"| {'yes' if d['warned'] else 'no'} / {'yes' if s['warned'] else 'no'} |"
+        )
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="benchmarks/results", help="folder for source_coherence.md and .csv")
     ap.add_argument("--scenes", nargs="*", choices=list(SCENES), help="a subset of the scenes (default: all)")
     ap.add_argument("--seeds", type=int, nargs="*", default=list(SEEDS))
     ap.add_argument("--report-only", action="store_true", help="re-write the report from the CSV")
+    ap.add_argument(
+        "--random",
+        action="store_true",
+        help=f"the {RANDOM_LARGEST} random geometries of 0-{RANDOM_SCENES - 1} whose sample moves most, instead",
+    )
     a = ap.parse_args(argv)
+    if a.random:
+        largest = sorted(range(RANDOM_SCENES), key=random_shift_px)[-RANDOM_LARGEST:]
+
+        def compute_random() -> list[dict]:
+            out = []
+            for i in largest:
+                out += random_rows(i)
+                print(out[-len(MODELS) :], flush=True)
+            return out
+
+        rows = rows_of(a.out, "source_coherence_random.csv", a.report_only, compute_random)
+        name = "source_coherence_random.md"
+        write_random_markdown(rows, f"{a.out}/{name}", command_line("benchmarks.source_coherence", argv))
+        return
 
     def compute() -> list[dict]:
         out = []
@@ -200,7 +315,7 @@ def main(argv=None) -> None:
             for seed in a.seeds:
                 for model in MODELS:
                     out += scene_rows(scene, model, seed)
-                    print(out[-2:], flush=True)
+                    print(out[-len(MODELS) :], flush=True)
         return out
 
     rows = rows_of(a.out, "source_coherence.csv", a.report_only, compute)

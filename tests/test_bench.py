@@ -528,6 +528,26 @@ def test_source_coherence_report_means_each_scene_and_model_over_the_seeds(tmp_p
     assert f"{head} source | 1.08 | -2.0% / +1.0% | 0.900 | 0.150 | 0.200 | 2.000 | 1.40 | 1/2 |" in text
 
 
+def test_source_coherence_random_report_pairs_each_scene_under_both_models(tmp_path):
+    """benchmarks/source_coherence.py --random: per scene its two models side by side, sorted by
+    the shift, and the holds and warnings counted over the scenes run under both."""
+    from benchmarks.source_coherence import write_random_markdown
+
+    def row(scene, model, shift, error, warned):
+        return dict(
+            scene=scene, geometry="L1 6.2 mm, L2 14.1 mm", model=model, shift_sigma_px=shift, phase_error=error,
+            holds=error < 0.2, sample_misfit=1.0, warned=warned, seconds=1.0,
+        )  # fmt: skip
+
+    rows = [row(3, "detector", 0.5, 0.1, False), row(3, "source", 0.5, 0.25, True)]
+    rows += [row(9, "detector", 1.7, 0.15, False), row(9, "source", 1.7, 0.12, False)]
+    write_random_markdown(rows, str(tmp_path / "r.md"), "python -m benchmarks.source_coherence --random")
+    text = (tmp_path / "r.md").read_text()
+    assert "Holds: detector 2 of 2, source 1; warned: detector 0, source 1." in text
+    assert text.index("| 9 |") < text.index("| 3 |")  # the larger shift first
+    assert "| 3 | L1 6.2 mm, L2 14.1 mm | 0.50 | 0.100 / 0.250 | yes / no | 1.00 / 1.00 | no / yes |" in text
+
+
 def test_field_grid_random_report_splits_the_pairs_by_what_the_alpha_rule_did():
     """benchmarks/field_grid.py's random scenes: only the scenes that ran on both grids are
     paired, each group of the alpha rule's outcome counts its holding scenes and the detector

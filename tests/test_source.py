@@ -9,7 +9,7 @@ import pytest
 from pwf_dask.physics import optics, source
 from pwf_dask.simulation import SpeckleSetup
 from pwf_dask.simulation.phantoms import default_phantom
-from pwf_dask.simulation.speckle import SpeckleSimulator
+from pwf_dask.simulation.speckle import SpeckleSimulator, source_geometry
 
 UPSTREAM = {"sample_diffuser_distance_m": 0.0, "diffuser_upstream_m": 0.05}
 
@@ -40,7 +40,7 @@ def test_one_tilted_wave_gives_the_shift_formula(fields):
     """A plane wave tilted by theta through diffuser and sample, propagated by the angular
     spectrum, equals S[theta z_ref] |P2{t S[theta h] x}|^2 (fields band-limited so that |v|^2
     does not alias on the grid); h of the other sign, or no shift, is far off."""
-    _, sim, xs, diffuser = _scene(**fields)
+    setup, sim, xs, diffuser = _scene(**fields)
     ny, nx = sim.fine_shape
     low = (np.abs(np.fft.fftfreq(ny))[:, None] > 0.12) | (np.abs(np.fft.fftfreq(nx))[None, :] > 0.12)
 
@@ -61,7 +61,7 @@ def test_one_tilted_wave_gives_the_shift_formula(fields):
     else:
         explicit = np.abs(propagate(propagate(tilt * xs, sim.kernel1) * diffuser, sim.kernel2)) ** 2
     carrier, lit = sim._carrier_and_sample(xs, diffuser)
-    z_ref, h = sim._source_geometry()
+    z_ref, h = source_geometry(setup)
     fx = np.fft.fftfreq(nx, sim.spacing)
 
     def formula(sign):

@@ -195,6 +195,24 @@ def dark_field_blur(intensity: np.ndarray, sigma_px: np.ndarray, levels: int = 9
     return out
 
 
+def source_geometry(setup: SpeckleSetup) -> tuple[float, float]:
+    """(z_ref, h) of :mod:`pwf_dask.physics.source`: the diffuser's distance to the detector,
+    and the sample's shift against the speckle per radian of tilt."""
+    if setup.diffuser_upstream_m:
+        return setup.diffuser_upstream_m + setup.diffuser_detector_distance_m, -setup.diffuser_upstream_m
+    return setup.diffuser_detector_distance_m, setup.sample_diffuser_distance_m
+
+
+def sample_shift_sigma_m(setup: SpeckleSetup) -> tuple[float, float]:
+    """The rms shift (y, x) of the sample against the speckle over the source's points: zero
+    under the paper's IPSF model, at full coherence, or with both in one plane."""
+    if setup.coherence_model != "source":
+        return (0.0, 0.0)
+    z_ref, h = source_geometry(setup)
+    lengths = (setup.coherence_length_y_m, setup.coherence_length_x_m)
+    return tuple(source.ipsf_sigma_m(c) * h / z_ref for c in lengths)
+
+
 class SpeckleSimulator:
     """Forward simulation of sample and reference speckle images for one set-up and diffuser.
 
@@ -288,7 +306,7 @@ class SpeckleSimulator:
         """
         fft = self.fft
         carrier, lit = self._carrier_and_sample(sample_field, diffuser)
-        if sample_field is not None and self._sample_shift_sigma_m() != (0.0, 0.0):
+        if sample_field is not None and sample_shift_sigma_m(self.setup) != (0.0, 0.0):
             inten = self._extended_source_intensity(carrier, lit)
         else:
             v = fft.ifft2(fft.fft2(carrier * lit) * self.kernel2)
@@ -319,28 +337,11 @@ class SpeckleSimulator:
             return diffuser, sample_field
         return diffuser, fft.ifft2(fft.fft2(sample_field) * self.kernel1)
 
-    def _source_geometry(self) -> tuple[float, float]:
-        """(z_ref, h) of :mod:`pwf_dask.physics.source`: the diffuser's distance to the
-        detector, and the sample's shift against the speckle per radian of tilt."""
-        st = self.setup
-        if st.diffuser_upstream_m:
-            return st.diffuser_upstream_m + st.diffuser_detector_distance_m, -st.diffuser_upstream_m
-        return st.diffuser_detector_distance_m, st.sample_diffuser_distance_m
-
-    def _sample_shift_sigma_m(self) -> tuple[float, float]:
-        """The rms shift (y, x) of the sample against the speckle over the source's points:
-        zero under the paper's IPSF model, at full coherence, or with both in one plane."""
-        st = self.setup
-        if st.coherence_model != "source":
-            return (0.0, 0.0)
-        z_ref, h = self._source_geometry()
-        return tuple(source.ipsf_sigma_m(c) * h / z_ref for c in (st.coherence_length_y_m, st.coherence_length_x_m))
-
     def _extended_source_intensity(self, carrier, lit):
         """The mean over the source's points of S[theta z_ref] |P2{t S[theta h] x}|^2
         (:mod:`pwf_dask.physics.source`), on the fine grid before the detector."""
         st, fft = self.setup, self.fft
-        shift_sigma = self._sample_shift_sigma_m()
+        shift_sigma = sample_shift_sigma_m(self.setup)
         detector_sigma = [source.ipsf_sigma_m(c) for c in (st.coherence_length_y_m, st.coherence_length_x_m)]
         fy = np.fft.fftfreq(self.fine_shape[0], self.spacing)
         fx = np.fft.fftfreq(self.fine_shape[1], self.spacing)
