@@ -25,12 +25,12 @@ def _scene(shape=(48, 64), margin_px=16, **fields):
 def test_node_transfers_sum_to_the_iotf():
     freq = np.fft.rfftfreq(200, 0.325e-6)
     sigma = source.ipsf_sigma_m(3.47e-6)
-    total = source.bin_transfer(freq, sigma, 7).sum(axis=0)
+    total = source.node_transfer(freq, sigma, 7).sum(axis=0)
     iotf = optics.iotf((1, 200), 0.325e-6, 3.47e-6, 0.0)[0]
     np.testing.assert_allclose(total.real, iotf, atol=1e-9)
     np.testing.assert_allclose(total.imag, 0.0, atol=1e-9)
     # the nodes are the conditional means of equal-probability bins: symmetric, mean 0
-    nodes = source.source_bins(6)
+    nodes = source.source_nodes(6)
     np.testing.assert_allclose(nodes, -nodes[::-1], atol=1e-12)
     assert nodes.mean() == pytest.approx(0.0, abs=1e-12)
 
@@ -99,7 +99,7 @@ def test_the_nodes_converge():
     setup, _, xs, diffuser = _scene(shape=(64, 64), **UPSTREAM)
 
     def image(nodes):
-        return SpeckleSimulator(replace(setup, coherence_model="source", source_bins=nodes), seed=1).intensity(
+        return SpeckleSimulator(replace(setup, coherence_model="source", source_nodes=nodes), seed=1).intensity(
             xs, diffuser
         )
 
@@ -115,5 +115,5 @@ def test_the_nodes_converge():
 def test_a_bad_coherence_model_is_refused_in_one_line():
     with pytest.raises(ValueError, match="unknown coherence_model 'gaussian'"):
         SpeckleSetup(coherence_model="gaussian")
-    with pytest.raises(ValueError, match="source_bins must be a whole number >= 1"):
-        SpeckleSetup(coherence_model="source", source_bins=0)
+    with pytest.raises(ValueError, match="source_nodes must be a whole number >= 1"):
+        SpeckleSetup(coherence_model="source", source_nodes=0)

@@ -17,10 +17,10 @@ shift against the speckle per unit angle: +L1 with the diffuser L1 downstream of
 "An extended source").
 
 The detector intensity is the mean of I_theta over theta ~ N(0, sigma_theta^2) per axis.
-:func:`source_bins` puts nodes at the conditional means of equal-probability bins of each
+:func:`source_nodes` puts nodes at the conditional means of equal-probability bins of each
 axis; the sample's shift theta h is computed at the nodes and interpolated linearly between
 them, while the detector shift theta z_ref is integrated exactly against the interpolation's
-hat functions (on a 1 / :data:`SUBSTEPS_PER_SIGMA` sigma sub-grid, :func:`bin_transfer`), so
+hat functions (on a 1 / :data:`SUBSTEPS_PER_SIGMA` sigma sub-grid, :func:`node_transfer`), so
 that the nodes' transfer functions sum to the paper's IOTF: with h = 0 the sum is the IPSF
 model.
 """
@@ -36,7 +36,7 @@ from scipy import special
 #: which each bin's detector shift is integrated (the Gaussian's tail beyond it: 1e-12)
 SUBSTEPS_PER_SIGMA = 200
 HALF_WIDTH_SIGMA = 7.0
-#: nodes per axis of :func:`bins_per_axis`: this many per detector pixel of the sample's rms
+#: nodes per axis of :func:`nodes_per_axis`: this many per detector pixel of the sample's rms
 #: shift, at least :data:`MIN_NODES` and at most :data:`MAX_NODES`. Against 32 nodes per axis,
 #: the intensity of a 128^2 bead scene moved by 0.16 % rms of its mean (the paper's geometry,
 #: 5 x 4 nodes), 0.15 % (the diffuser 50 mm upstream, 22 x 18) and 0.20 % (L1 10 mm, L2 100 mm,
@@ -52,18 +52,18 @@ def ipsf_sigma_m(coherence_length_m: float) -> float:
     return coherence_length_m / (2.0 * math.sqrt(math.pi))
 
 
-def source_bins(n_bins: int) -> np.ndarray:
-    """The conditional means (in standard deviations) of a standard normal split into
-    ``n_bins`` bins of equal probability: (phi(a0) - phi(a1)) * n_bins."""
-    edges = special.ndtri(np.linspace(0.0, 1.0, n_bins + 1))
+def source_nodes(n_nodes: int) -> np.ndarray:
+    """The source's nodes along one axis, in standard deviations: the conditional means of a
+    standard normal split into ``n_nodes`` bins of equal probability, (phi(a0) - phi(a1)) * n_nodes."""
+    edges = special.ndtri(np.linspace(0.0, 1.0, n_nodes + 1))
     pdf = np.exp(-0.5 * edges**2) / math.sqrt(2 * math.pi)  # 0 at the infinite edges
-    return (pdf[:-1] - pdf[1:]) * n_bins
+    return (pdf[:-1] - pdf[1:]) * n_nodes
 
 
-def bin_transfer(freq: np.ndarray, sigma_m: float, n_bins: int) -> np.ndarray:
-    """Per node a_k of :func:`source_bins`, the transfer function of the detector shift
+def node_transfer(freq: np.ndarray, sigma_m: float, n_nodes: int) -> np.ndarray:
+    """Per node a_k of :func:`source_nodes`, the transfer function of the detector shift
     a sigma_m weighted by the node's hat function: sum over a of w(a) hat_k(a)
-    exp(-2 pi i f a sigma_m), shape (n_bins, len(freq)).
+    exp(-2 pi i f a sigma_m), shape (n_nodes, len(freq)).
 
     The sample's shift is known at the nodes only; the hat functions interpolate it linearly
     between them (constant beyond the outer ones), which keeps its correlation with the
@@ -74,18 +74,18 @@ def bin_transfer(freq: np.ndarray, sigma_m: float, n_bins: int) -> np.ndarray:
     a = (np.arange(n_sub) + 0.5) / SUBSTEPS_PER_SIGMA - HALF_WIDTH_SIGMA
     w = np.exp(-0.5 * a**2)
     w /= w.sum()
-    nodes = source_bins(n_bins)
-    hats = np.eye(n_bins)
+    nodes = source_nodes(n_nodes)
+    hats = np.eye(n_nodes)
     freq = np.asarray(freq, float)
-    out = np.zeros((n_bins, len(freq)), complex)
-    for k in range(n_bins):
+    out = np.zeros((n_nodes, len(freq)), complex)
+    for k in range(n_nodes):
         weight = w * np.interp(a, nodes, hats[k])
         sel = weight > 0
         out[k] = weight[sel] @ np.exp(-2j * np.pi * np.outer(a[sel] * sigma_m, freq))
     return out
 
 
-def bins_per_axis(shift_sigma_m: float, pixel_size_m: float) -> int:
+def nodes_per_axis(shift_sigma_m: float, pixel_size_m: float) -> int:
     """Nodes per axis for a sample shifted by ``shift_sigma_m`` rms against the speckle
     (:data:`NODES_PER_PIXEL_OF_SHIFT`); 1 where it does not move."""
     if shift_sigma_m == 0:

@@ -115,8 +115,8 @@ class SpeckleSetup:
     #: tilted waves also move the sample against the speckle (:mod:`pwf_dask.physics.source`;
     #: the coherence lengths are then the reference's, at the diffuser's distance)
     coherence_model: str = "detector"
-    #: bins per axis of the source's angles (``"source"``; None: :func:`~pwf_dask.physics.source.bins_per_axis`)
-    source_bins: int | None = None
+    #: nodes per axis of the source's angles (``"source"``; None: :func:`~pwf_dask.physics.source.nodes_per_axis`)
+    source_nodes: int | None = None
 
     def geometry(self) -> dict:
         """The keyword arguments :func:`pwf_dask.retrieve_projection` needs for this set-up."""
@@ -150,8 +150,8 @@ class SpeckleSetup:
             raise ValueError(
                 f"unknown coherence_model {self.coherence_model!r}: choose one of {', '.join(COHERENCE_MODELS)}"
             )
-        if self.source_bins is not None and not (isinstance(self.source_bins, int) and self.source_bins >= 1):
-            raise ValueError(f"source_bins must be a whole number >= 1, got {self.source_bins!r}")
+        if self.source_nodes is not None and not (isinstance(self.source_nodes, int) and self.source_nodes >= 1):
+            raise ValueError(f"source_nodes must be a whole number >= 1, got {self.source_nodes!r}")
 
     def fine_grid(self):
         s = self.oversample
@@ -346,15 +346,15 @@ class SpeckleSimulator:
         fy = np.fft.fftfreq(self.fine_shape[0], self.spacing)
         fx = np.fft.fftfreq(self.fine_shape[1], self.spacing)
         fx_half = np.fft.rfftfreq(self.fine_shape[1], self.spacing)
-        n = [st.source_bins or source.bins_per_axis(s, st.pixel_size_m) for s in shift_sigma]
-        centres = [source.source_bins(k) for k in n]
-        transfer_y = source.bin_transfer(fy, detector_sigma[0], n[0])
-        transfer_x = source.bin_transfer(fx_half, detector_sigma[1], n[1])
-        spec_lit = fft.fft2(np.broadcast_to(lit, self.fine_shape).astype(complex))
+        n = [st.source_nodes or source.nodes_per_axis(s, st.pixel_size_m) for s in shift_sigma]
+        nodes = [source.source_nodes(k) for k in n]
+        transfer_y = source.node_transfer(fy, detector_sigma[0], n[0])
+        transfer_x = source.node_transfer(fx_half, detector_sigma[1], n[1])
+        spec_lit = fft.fft2(lit)  # the sample's field: this path runs only with one
         total = np.zeros((self.fine_shape[0], len(fx_half)), complex)
-        for i, cy in enumerate(centres[0]):
+        for i, cy in enumerate(nodes[0]):
             ramp_y = source.shift_ramp(fy, cy * shift_sigma[0])[:, None]
-            for j, cx in enumerate(centres[1]):
+            for j, cx in enumerate(nodes[1]):
                 ramp_x = source.shift_ramp(fx, cx * shift_sigma[1])[None, :]
                 a = fft.ifft2(spec_lit * ramp_y * ramp_x) * carrier
                 v = fft.ifft2(fft.fft2(a) * self.kernel2)
